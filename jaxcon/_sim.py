@@ -1,0 +1,101 @@
+"""Time stepping: `step` and `rollout`, jit-compiled, differentiable and batchable."""
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from . import _layout as L
+from ._model import Model, State, Trajectory, check_state
+from ._pytree import concrete
+from ._solver import Solver, System
+
+
+def _check_int(owner, name, value, minimum):
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{owner}: `{name}` must be a Python int (it is static), got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{owner}: `{name}` must be >= {minimum}, got {value}")
+
+
+def _check_call(owner, model, state, solver, dt, steps=None):
+    if not isinstance(model, Model):
+        raise TypeError(f"{owner}: `model` must be a jaxcon Model, got {type(model).__name__}")
+    if not isinstance(solver, Solver):
+        raise TypeError(f"{owner}: `solver` must be a jaxcon solver (e.g. jc.PGS()), got {type(solver).__name__}")
+    check_state(owner, model, state)
+    if np.ndim(dt) != 0:
+        raise ValueError(f"{owner}: `dt` must be a scalar, got shape {np.shape(dt)}")
+    d = concrete(dt)
+    if d is not None and not (np.isfinite(d) and d > 0):
+        raise ValueError(f"{owner}: `dt` must be finite and > 0, got {float(d)}")
+    if steps is not None:
+        _check_int(owner, "steps", steps, 1)
+
+
+def _dtype(state):
+    return jnp.result_type(state.x)
+
+
+def _enter(model, state):
+    t = model.topology
+    dtype = _dtype(state)
+    sys = System.from_model(model, dtype)
+    x = L.particles_in(t, jnp.asarray(state.x, dtype))
+    v = L.particles_in(t, jnp.asarray(state.v, dtype))
+    lam = L.constraints_in(t, jnp.asarray(state.lam, dtype))
+    return sys, x, v, lam
+
+
+@jax.jit
+def _step_jit(model, state, solver, dt):
+    sys, x, v, lam = _enter(model, state)
+    x, v, lam = solver._step(sys, x, v, lam, jnp.asarray(dt, x.dtype))
+    t = model.topology
+    return State(L.particles_out(t, x), L.particles_out(t, v), L.constraints_out(t, lam))
+
+
+def step(model: Model, state: State, solver: Solver, dt) -> State:
+    """Advance `state` by one step of length `dt` seconds. Returns the new State (its lam: the step's
+    constraint impulses, N s, > 0 pulling)."""
+    _check_call("step", model, state, solver, dt)
+    return _step_jit(model, state, solver, dt)
+
+
+@functools.partial(jax.jit, static_argnames=("steps", "save_every"))
+def _rollout_jit(model, state, solver, dt, steps, save_every):
+    sys, x, v, lam = _enter(model, state)
+    dt = jnp.asarray(dt, x.dtype)
+
+    def one(_, carry):
+        return solver._step(sys, *carry, dt)
+
+    def body(carry, _):
+        if save_every == 1:
+            carry = one(0, carry)
+        else:
+            carry = lax.fori_loop(0, save_every, one, carry)
+        return carry, carry
+
+    (x, v, lam), (xs, vs, lams) = lax.scan(body, (x, v, lam), length=steps // save_every)
+    t = model.topology
+    final = State(L.particles_out(t, x), L.particles_out(t, v), L.constraints_out(t, lam))
+    traj = Trajectory(L.particles_out(t, xs), L.particles_out(t, vs), L.constraints_out(t, lams))
+    return final, traj
+
+
+def rollout(model: Model, state: State, solver: Solver, dt, steps: int, *, save_every: int = 1):
+    """Run `steps` steps of length `dt` seconds.
+
+    Returns (final_state, traj): traj.x, traj.v [steps // save_every, n, dim] and traj.lam
+    [steps // save_every, m], recorded after every `save_every`-th step (default: every step; lam is the
+    impulse of that step, N s, > 0 pulling). Works under jax.jit, jax.grad and jax.vmap.
+    """
+    _check_call("rollout", model, state, solver, dt, steps)
+    _check_int("rollout", "save_every", save_every, 1)
+    if steps % save_every:
+        raise ValueError(f"rollout: `steps` ({steps}) must be a multiple of `save_every` ({save_every})")
+    return _rollout_jit(model, state, solver, dt, steps, save_every)

@@ -1,0 +1,183 @@
+"""Static constraint topology, fixed in NumPy when a model is built.
+
+Constraints are distance constraints between particle pairs (i, j). They are grouped into colours such that
+no two constraints of one colour share a particle, so a whole colour can be solved at once and Gauss-Seidel
+order holds between colours. Internally particles are stored struct-of-arrays as ``[dim, *view]`` (``view`` is
+``(n,)`` or a grid shape such as ``(ny, nx)``) and each colour is a *block*:
+
+* a strided block, when the colour's first and second endpoints each form a strided box of the view (chains,
+  structured cloth colourings). Reading is a strided slice, writing back is a pad: no gather, no scatter.
+* a gather block otherwise. Reading is a gather; writing back is also a gather, from the block's impulses into
+  particle order (each particle appears at most once per colour, so no scatter-add is needed).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import numpy as np
+
+from ._pytree import StaticArray
+
+
+def greedy_colouring(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
+    """Greedy edge colouring in the given order: smallest colour not used at either endpoint."""
+    colour = np.empty(len(i), dtype=np.int64)
+    used = [set() for _ in range(n)]
+    for k, (a, b) in enumerate(zip(i.tolist(), j.tolist())):
+        c = 0
+        while c in used[a] or c in used[b]:
+            c += 1
+        colour[k] = c
+        used[a].add(c)
+        used[b].add(c)
+    return colour
+
+
+def check_colouring(i: np.ndarray, j: np.ndarray, colour: np.ndarray, n: int) -> None:
+    """Raise ValueError unless no two constraints of the same colour share a particle."""
+    for c in np.unique(colour):
+        sel = colour == c
+        ends = np.concatenate([i[sel], j[sel]])
+        counts = np.bincount(ends, minlength=n)
+        if counts.max(initial=0) > 1:
+            p = int(np.argmax(counts))
+            ks = np.nonzero(sel & ((i == p) | (j == p)))[0][:2].tolist()
+            raise ValueError(
+                f"colouring: constraints {ks} both have colour {int(c)} and share particle {p}; "
+                "constraints of one colour must not share a particle"
+            )
+
+
+def _strided_box(coords: np.ndarray) -> Optional[tuple]:
+    """If `coords` ([k, ndim], in row-major order) is exactly a strided box, return (start, step, count)."""
+    start, step, count = [], [], []
+    for ax in range(coords.shape[1]):
+        vals = np.unique(coords[:, ax])
+        s = int(vals[1] - vals[0]) if len(vals) > 1 else 1
+        if len(vals) > 1 and not np.all(np.diff(vals) == s):
+            return None
+        start.append(int(vals[0]))
+        step.append(s)
+        count.append(len(vals))
+    if int(np.prod(count)) != len(coords):
+        return None
+    grid = np.stack(
+        np.meshgrid(*[st + sp * np.arange(c) for st, sp, c in zip(start, step, count)], indexing="ij"), -1
+    ).reshape(-1, coords.shape[1])
+    if not np.array_equal(grid, coords):
+        return None
+    return tuple(start), tuple(step), tuple(count)
+
+
+@dataclasses.dataclass(frozen=True)
+class Block:
+    """One colour of constraints, solved together. Shapes are static; arrays are read-only NumPy."""
+
+    offset: int                  # position of this block in the colour-ordered constraint vector
+    size: int                    # number of constraints
+    shape: tuple                 # per-constraint array shape inside the solver: box shape or (size,)
+    i_box: Optional[tuple]       # strided: (start, step, count) per view axis of the first endpoints
+    j_box: Optional[tuple]       # strided: same for the second endpoints
+    i_idx: Optional[StaticArray]  # gather: flat particle indices [size]
+    j_idx: Optional[StaticArray]
+    src: Optional[StaticArray]    # gather: [n] index into concat(p_i, p_j, 0) for the write-back
+    rope: Optional[StaticArray]   # bool [*shape] where mixed; None when all rods or all ropes
+    all_rope: bool
+
+    @property
+    def strided(self) -> bool:
+        return self.i_box is not None
+
+    @property
+    def has_rope(self) -> bool:
+        return self.all_rope or self.rope is not None
+
+
+class Topology:
+    """Everything static about a model: sizes, index pairs, kinds, colouring and the internal layout.
+
+    Hashes and compares by content (computed once), so it can be jit metadata.
+    """
+
+    def __init__(self, n, dim, i, j, is_rope, colour, view):
+        self.n = int(n)
+        self.dim = int(dim)
+        self.i = np.asarray(i, np.int64)
+        self.j = np.asarray(j, np.int64)
+        self.is_rope = np.asarray(is_rope, bool)
+        self.colour = np.asarray(colour, np.int64)
+        self.view = tuple(int(s) for s in view)
+        self.m = len(self.i)
+        for a in (self.i, self.j, self.is_rope, self.colour):
+            a.setflags(write=False)
+        self.has_ropes = bool(self.is_rope.any())
+        self.has_rods = bool((~self.is_rope).any())
+        self._build_blocks()
+        self._key = (
+            self.n, self.dim, self.view, self.i.tobytes(), self.j.tobytes(), self.is_rope.tobytes(),
+            self.colour.tobytes(),
+        )
+        self._hash = hash(self._key)
+
+    @property
+    def n_colours(self) -> int:
+        return len(self.blocks)
+
+    def _build_blocks(self):
+        n, view = self.n, self.view
+        # Orient every constraint with i < j (a distance constraint is symmetric), so regular structures
+        # give a constant endpoint offset and hence strided boxes.
+        lo = np.minimum(self.i, self.j)
+        hi = np.maximum(self.i, self.j)
+        order, blocks, offset = [], [], 0
+        for c in np.unique(self.colour):
+            ks = np.nonzero(self.colour == c)[0]
+            ks = ks[np.argsort(lo[ks], kind="stable")]
+            ci = np.stack(np.unravel_index(lo[ks], view), -1)
+            cj = np.stack(np.unravel_index(hi[ks], view), -1)
+            ibox = _strided_box(ci)
+            jbox = None
+            if ibox is not None:
+                delta = cj - ci
+                if np.all(delta == delta[0]):
+                    jstart = tuple(int(s + d) for s, d in zip(ibox[0], delta[0]))
+                    jbox = (jstart, ibox[1], ibox[2])
+            rope = self.is_rope[ks]
+            all_rope = bool(rope.all())
+            if jbox is not None:
+                shape = tuple(ibox[2])
+                mixed = StaticArray(rope.reshape(shape)) if rope.any() and not all_rope else None
+                blk = Block(offset, len(ks), shape, ibox, jbox, None, None, None, mixed, all_rope)
+            else:
+                size = len(ks)
+                src = np.full(n, 2 * size, np.int32)
+                src[lo[ks]] = np.arange(size)
+                src[hi[ks]] = size + np.arange(size)
+                mixed = StaticArray(rope) if rope.any() and not all_rope else None
+                blk = Block(offset, size, (size,), None, None, StaticArray(lo[ks].astype(np.int32)),
+                            StaticArray(hi[ks].astype(np.int32)), StaticArray(src), mixed, all_rope)
+            blocks.append(blk)
+            order.append(ks)
+            offset += len(ks)
+        perm = np.concatenate(order) if order else np.zeros(0, np.int64)
+        self.blocks = tuple(blocks)
+        # perm[q] = user index of the constraint at colour-ordered position q; inv_perm is its inverse.
+        self.perm = perm.astype(np.int32)
+        self.inv_perm = np.argsort(perm).astype(np.int32)
+        self.perm.setflags(write=False)
+        self.inv_perm.setflags(write=False)
+
+    def __hash__(self):
+        return self._hash
+
+    def __eq__(self, other):
+        return self is other or (
+            isinstance(other, Topology) and self._hash == other._hash and self._key == other._key
+        )
+
+    def __repr__(self):
+        kinds = f"{int((~self.is_rope).sum())} rods, {int(self.is_rope.sum())} ropes"
+        strided = sum(b.strided for b in self.blocks)
+        return (f"Topology(n={self.n}, dim={self.dim}, {kinds}, {self.n_colours} colours "
+                f"({strided} strided), view={self.view})")
