@@ -216,8 +216,13 @@ def build(
     if np.ndim(m_arr) == 0:
         m_arr = np.full(n, float(m_arr))
     _check_shape("build", "masses", m_arr, (n,))
-    free_m = m_arr[~is_fixed]
-    _check_values("build", "masses (of particles not in `fixed`)", free_m, positive=True)
+    if m_arr.dtype.kind not in "biuf":
+        raise TypeError(f"build: `masses` must be real numbers, got dtype {m_arr.dtype}")
+    bad = ~is_fixed & ~(np.isfinite(m_arr) & (m_arr > 0))
+    if bad.any():
+        p = int(np.argmax(bad))
+        raise ValueError(f"build: `masses` must be finite and > 0 for particles that are not in `fixed`; "
+                         f"particle {p} has mass {m_arr[p]}")
     inv_mass = np.where(is_fixed, 0.0, 1.0 / np.where(is_fixed, 1.0, m_arr))
 
     rod_pairs = _pairs("rods", rods, n)

@@ -1,0 +1,68 @@
+"""The calls of shared/API.md, as written there (the user-facing contract)."""
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax  # noqa: F401  (part of the contract's imports)
+
+import jaxcon as jc
+from jaxcon._cli import main
+
+
+def test_api_md_calls_work_as_written():
+    model, state = jc.scenes.pendulum(length=1.0, mass=1.0, angle=0.3)
+    model, state = jc.scenes.double_pendulum(lengths=(1.0, 1.0), masses=(1.0, 1.0), angles=(1.5708, 1.5708))
+    model, state = jc.scenes.chain(n_links=50, length=5.0, mass=0.5, end_mass=10.0, angle=1.5708, kind="rod")
+    assert np.isclose(1 / float(model.inv_mass[-1]) / (1 / float(model.inv_mass[1])), 1000.0)
+    model, state = jc.scenes.chain(n_links=50, length=5.0, mass=0.5, end_mass=10.0, angle=1.5708, kind="rope")
+    model, state = jc.scenes.cloth(nx=32, ny=32, size=1.0, mass=1.0)
+    assert model.dim == 3 and model.n_particles == 1024 and int((model.inv_mass == 0).sum()) == 2
+
+    positions = jnp.array([[0.0, 0.0], [0.5, 0.0], [1.0, 0.0], [1.5, 0.0]])
+    masses = jnp.array([1.0, 1.0, 1.0, 1.0])
+    model, state = jc.build(positions, masses, rods=[(0, 1), (1, 2)], ropes=[(2, 3)], fixed=[0],
+                            rest_lengths=None, velocities=None, gravity=None)
+    np.testing.assert_allclose(np.asarray(model.rest_length), [0.5, 0.5, 0.5])
+
+    solver = jc.PGS(iterations=10, beta=0.2, warm_start=True)
+    state = jc.step(model, state, solver, dt=1 / 240)
+    final, traj = jc.rollout(model, state, solver, dt=1 / 240, steps=480)
+    assert traj.x.shape == (480, 4, 2) and traj.v.shape == (480, 4, 2) and traj.lam.shape == (480, 3)
+    assert model.rest_length.shape == (3,) and model.inv_mass.shape == (4,)
+    model2 = model.replace(rest_length=model.rest_length * 1.01)
+    assert model2.topology == model.topology
+
+    observed = traj.x[:240] + 0.001
+
+    def loss(rest_length, beta):
+        _, tr = jc.rollout(model.replace(rest_length=rest_length), state,
+                           jc.PGS(iterations=10, beta=beta), dt=1 / 240, steps=240)
+        return jnp.mean((tr.x - observed) ** 2)
+    g_rest, g_beta = jax.grad(loss, argnums=(0, 1))(model.rest_length, 0.2)
+    assert g_rest.shape == (3,) and np.isfinite(np.asarray(g_rest)).all() and np.isfinite(float(g_beta))
+    assert float(jnp.max(jnp.abs(g_rest))) > 0
+
+    batch = model.rest_length * jnp.array([[0.9], [1.0], [1.1]])
+    finals, trajs = jax.vmap(lambda L: jc.rollout(model.replace(rest_length=L), state, solver, 1 / 240, 240))(batch)
+    assert trajs.x.shape == (3, 240, 4, 2) and finals.x.shape == (3, 4, 2)
+
+
+def test_demo_runs(capsys):
+    assert main(["demo", "--small"]) == 0
+    out = capsys.readouterr().out
+    for name in ("pendulum", "double_pendulum", "chain_20", "cloth_8x8", "compile s", "max viol", "E drift"):
+        assert name in out
+
+
+def test_bench_writes_json(tmp_path, capsys):
+    path = tmp_path / "bench.json"
+    assert main(["bench", "--small", "--repeats", "1", "--out", str(path), "--f32-only"]) == 0
+    data = json.loads(path.read_text())
+    rows = data["results"]
+    assert {r["case"] for r in rows} >= {"double_pendulum", "chain_100"}
+    for r in rows:
+        assert r["median_s_per_step"] > 0 and r["compile_s"] > 0 and np.isfinite(r["max_violation"])
+    dp = [r for r in rows if r["case"] == "double_pendulum"][0]
+    assert dp["position_error_at_1s"] < 0.05
+    assert "cpu" in data["machine"]

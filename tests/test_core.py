@@ -1,0 +1,285 @@
+"""Core: PGS against independent references, rope semantics, transformations, gradients."""
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxcon as jc
+from jaxcon import _sim
+from reference import double_pendulum_positions
+
+G = 9.81
+
+
+# ---- accuracy against the reduced-coordinate ODE ------------------------------------------------------------
+def test_double_pendulum_converges_to_reduced_ode():
+    """Position error at t = 1 s against SciPy DOP853 (rtol 1e-12) falls first-order as dt falls."""
+    angles, lengths, masses = (0.5, 0.5), (1.0, 1.0), (1.0, 1.0)
+    ref = double_pendulum_positions(angles, lengths, masses, [1.0])[0]
+    model, state = jc.scenes.double_pendulum(lengths, masses, angles, dtype=np.float64)
+    solver = jc.PGS(iterations=50, beta=0.2)
+    errors = []
+    dts = [1 / 240, 1 / 480, 1 / 960, 1 / 1920]
+    for dt in dts:
+        final, _ = jc.rollout(model, state, solver, dt, int(round(1.0 / dt)))
+        errors.append(np.max(np.abs(np.asarray(final.x[1:]) - ref)))
+    slope = np.polyfit(np.log(dts), np.log(errors), 1)[0]
+    assert 0.8 < slope < 1.3, (errors, slope)          # symplectic Euler + velocity-level PGS: first order
+    assert errors[-1] < 3e-3, errors
+    assert all(b < a for a, b in zip(errors, errors[1:])), errors
+
+
+def test_double_pendulum_energy_and_drift_bounded_float32():
+    model, state = jc.scenes.double_pendulum(angles=(1.5708, 1.5708))
+    _, tr = jc.rollout(model, state, jc.PGS(iterations=10, beta=0.2), 1 / 240, 2400)
+    assert tr.x.dtype == jnp.float32
+    assert float(jnp.max(jc.violation(model, tr.x))) < 5e-3
+    assert abs(float(jc.energy_drift(model, state, tr))) < 0.1
+
+
+# ---- multipliers are forces --------------------------------------------------------------------------------
+@pytest.mark.parametrize("mass", [1.0, 2.5])
+@pytest.mark.parametrize("substeps", [1, 4])
+def test_hanging_mass_tension_is_mg(mass, substeps):
+    model, state = jc.scenes.pendulum(length=0.7, mass=mass, angle=0.0, dtype=np.float64)
+    dt = 1 / 240
+    _, tr = jc.rollout(model, state, jc.PGS(iterations=5, substeps=substeps), dt, 50)
+    np.testing.assert_allclose(np.asarray(tr.lam) / dt, mass * G, rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(tr.x[-1]), np.asarray(state.x), atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["rod", "rope"])
+def test_hanging_chain_tensions_carry_the_weight_below(kind):
+    """Link k of a chain at rest carries the weight of every bob below it (the 10 kg end mass included).
+    The 100:1 mass ratio makes PGS converge slowly (200 iterations leave the first step 68% off), hence the
+    many iterations here."""
+    model, state = jc.scenes.chain(n_links=6, length=1.2, mass=0.6, end_mass=10.0, angle=0.0, kind=kind,
+                                   dtype=np.float64)
+    dt = 1 / 240
+    _, tr = jc.rollout(model, state, jc.PGS(iterations=3000), dt, 30)
+    masses = 1 / np.asarray(model.inv_mass[1:])
+    expected = G * np.cumsum(masses[::-1])[::-1]
+    np.testing.assert_allclose(np.asarray(tr.lam[-1]) / dt, expected, rtol=1e-6)
+
+
+# ---- rope semantics ----------------------------------------------------------------------------------------
+def _tether(kind, dtype=np.float64):
+    x = np.array([[0.0, 0.0], [0.0, -0.5]], dtype)
+    pairs = [(0, 1)]
+    return jc.build(x, [1.0, 2.0], rods=pairs if kind == "rod" else None, ropes=pairs if kind == "rope" else None,
+                    fixed=[0], rest_lengths=[1.0])
+
+
+def test_slack_rope_is_exact_free_fall_then_catches():
+    model, state = _tether("rope")
+    dt, steps = 1 / 240, 120
+    _, tr = jc.rollout(model, state, jc.PGS(iterations=10), dt, steps)
+    y = np.asarray(tr.x[:, 1, 1])
+    n = np.arange(1, steps + 1)
+    free = -0.5 - G * dt * dt * n * (n + 1) / 2          # symplectic Euler free fall, exactly
+    slack = free > -1.0 - G * dt * dt                    # steps in which even a free fall keeps the rope slack
+    assert slack.sum() > 60
+    np.testing.assert_allclose(y[slack], free[slack], rtol=0, atol=1e-12)
+    assert np.all(np.asarray(tr.lam[slack]) == 0)
+    # once taut it holds: no stretch beyond what Baumgarte corrects, and it pulls (lam > 0)
+    assert np.all(y > -1.0 - 0.02)
+    assert np.all(np.asarray(tr.lam) >= 0) and np.asarray(tr.lam)[~slack].max() > 0
+
+
+def test_rod_of_same_length_pushes_the_particle_out():
+    model, state = _tether("rod")
+    _, tr = jc.rollout(model, state, jc.PGS(iterations=10, beta=0.2), 1 / 240, 120)
+    d = np.linalg.norm(np.asarray(tr.x[:, 1]), axis=-1)
+    assert d[0] > 0.5 + 0.05                  # pushed out on the very first step, faster than free fall
+    assert abs(d[-1] - 1.0) < 1e-2
+    assert np.asarray(tr.lam).min() < 0       # a rod pushes: negative (compressive) impulse
+
+
+def test_rope_lambda_never_negative_and_slack_ropes_exert_nothing():
+    model, state = jc.scenes.chain(n_links=8, length=2.0, mass=0.8, angle=1.2, kind="rope", dtype=np.float64)
+    v = jnp.asarray(np.random.default_rng(0).normal(scale=3.0, size=state.v.shape)).at[0].set(0.0)
+    _, tr = jc.rollout(model, state.replace(v=v), jc.PGS(iterations=10), 1 / 240, 480)
+    lam = np.asarray(tr.lam)
+    assert lam.min() >= 0.0
+    d = np.linalg.norm(np.asarray(tr.x[:, model.pairs[:, 1]] - tr.x[:, model.pairs[:, 0]]), axis=-1)
+    slack = d < np.asarray(model.rest_length) * 0.9   # clearly slack at the end of the step
+    assert slack.any() and (~slack).any()
+    assert np.all(lam[slack] == 0)
+
+
+def test_rope_code_traced_only_when_ropes_exist():
+    """A scene with no ropes traces no rope code: the projection (a `max`) appears only with ropes."""
+    def jaxpr_text(kind):
+        model, state = jc.scenes.chain(n_links=4, kind=kind)
+        return str(jax.make_jaxpr(lambda s: _sim._rollout_jit(model, s, jc.PGS(), 1 / 240, 2, 1))(state))
+    assert not re.search(r"\bmax\b", jaxpr_text("rod"))
+    assert re.search(r"\bmax\b", jaxpr_text("rope"))
+
+
+# ---- layouts agree -----------------------------------------------------------------------------------------
+def test_strided_and_gather_layouts_agree():
+    model, state = jc.scenes.cloth(6, 5, dtype=np.float64)
+    pairs, colour = jc.scenes.cloth_edges(6, 5)
+    general, gstate = jc.build(state.x, 1 / 30 * np.ones(30), rods=pairs, fixed=[0, 5], colouring=colour)
+    greedy, _ = jc.build(state.x, 1 / 30 * np.ones(30), rods=pairs, fixed=[0, 5])
+    assert all(b.strided for b in model.topology.blocks)
+    assert not all(b.strided for b in general.topology.blocks)
+    solver = jc.PGS(iterations=4)
+    _, a = jc.rollout(model, state, solver, 1 / 240, 40)
+    _, b = jc.rollout(general, gstate, solver, 1 / 240, 40)
+    np.testing.assert_allclose(np.asarray(a.x), np.asarray(b.x), atol=1e-13)
+    np.testing.assert_allclose(np.asarray(a.lam), np.asarray(b.lam), atol=1e-13)
+    # another valid colouring changes the Gauss-Seidel order, not the physics it converges to
+    conv = jc.PGS(iterations=1000, warm_start=False)
+    c = jc.step(greedy, gstate, conv, 1 / 240)
+    d = jc.step(model, state, conv, 1 / 240)
+    np.testing.assert_allclose(np.asarray(c.x), np.asarray(d.x), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(c.lam), np.asarray(d.lam), rtol=0, atol=1e-9 * float(jnp.max(jnp.abs(d.lam))))
+
+
+def test_cloth_hangs_from_its_two_corners():
+    model, state = jc.scenes.cloth(8, 8, size=1.0, mass=1.0)
+    _, tr = jc.rollout(model, state, jc.PGS(iterations=20, substeps=2), 1 / 240, 480)
+    x = np.asarray(tr.x)
+    np.testing.assert_array_equal(x[:, [0, 7]], np.broadcast_to(np.asarray(state.x)[[0, 7]], (480, 2, 3)))
+    assert np.isfinite(x).all()
+    assert x[:, :, 2].min() < -0.9              # the free edge swings down to about the side length
+    assert x[:, :, 2].min() > -1.0 - 0.05       # ... and the cloth does not stretch much beyond it
+    assert float(jnp.max(jc.violation(model, tr.x))) < 0.05
+
+
+# ---- transformations ---------------------------------------------------------------------------------------
+def test_jit_and_vmap_match_unbatched():
+    model, state = jc.scenes.chain(n_links=5, length=1.0, mass=0.5, angle=0.8, dtype=np.float64)
+    solver = jc.PGS(iterations=8, beta=0.2)
+    scales = jnp.array([0.95, 1.0, 1.07])
+
+    def run(scale, x0):
+        return jc.rollout(model.replace(rest_length=model.rest_length * scale), state.replace(x=x0), solver,
+                          1 / 240, 60)
+
+    x0s = jnp.stack([state.x, state.x.at[1:].add(0.01), state.x.at[1:].add(-0.02)])
+    batched_final, batched = jax.vmap(run)(scales, x0s)
+    jitted = jax.jit(run)
+    for k in range(3):
+        f, tr = run(scales[k], x0s[k])
+        fj, trj = jitted(scales[k], x0s[k])
+        np.testing.assert_allclose(np.asarray(batched.x[k]), np.asarray(tr.x), rtol=0, atol=1e-13)
+        np.testing.assert_allclose(np.asarray(batched.lam[k]), np.asarray(tr.lam), rtol=0, atol=1e-13)
+        np.testing.assert_allclose(np.asarray(trj.x), np.asarray(tr.x), rtol=0, atol=1e-13)
+        np.testing.assert_allclose(np.asarray(batched_final.v[k]), np.asarray(f.v), rtol=0, atol=1e-13)
+
+
+def test_step_equals_one_rollout_step_and_save_every():
+    model, state = jc.scenes.double_pendulum(dtype=np.float64)
+    solver = jc.PGS()
+    s = state
+    for _ in range(4):
+        s = jc.step(model, s, solver, 1 / 240)
+    final, tr = jc.rollout(model, state, solver, 1 / 240, 4)
+    np.testing.assert_allclose(np.asarray(s.x), np.asarray(final.x), atol=1e-14)
+    np.testing.assert_allclose(np.asarray(s.lam), np.asarray(tr.lam[-1]), atol=1e-14)
+    _, sparse = jc.rollout(model, state, solver, 1 / 240, 4, save_every=2)
+    np.testing.assert_allclose(np.asarray(sparse.x), np.asarray(tr.x[1::2]), atol=1e-14)
+
+
+def test_rollout_compiles_once_for_new_parameter_values():
+    model, state = jc.scenes.chain(n_links=3)
+    jc.rollout(model, state, jc.PGS(beta=0.2), 1 / 240, 7)
+    before = _sim._rollout_jit._cache_size()
+    for k in range(3):
+        jc.rollout(model.replace(rest_length=model.rest_length * (1 + 0.01 * k)), state, jc.PGS(beta=0.1 + 0.05 * k),
+                   1 / (200 + k), 7)
+    assert _sim._rollout_jit._cache_size() == before
+
+
+def test_dtypes_follow_inputs():
+    for dtype in (np.float32, np.float64):
+        model, state = jc.scenes.pendulum(dtype=dtype)
+        final, tr = jc.rollout(model, state, jc.PGS(), 1 / 240, 3)
+        assert final.x.dtype == dtype and tr.lam.dtype == dtype and model.rest_length.dtype == dtype
+
+
+# ---- gradients ---------------------------------------------------------------------------------------------
+def _fd(f, x, eps=1e-6):
+    x = np.asarray(x, np.float64)
+    g = np.zeros_like(x)
+    for idx in np.ndindex(x.shape):
+        e = np.zeros_like(x)
+        e[idx] = eps
+        g[idx] = (f(x + e) - f(x - e)) / (2 * eps)
+    return g
+
+
+def test_gradients_match_central_finite_differences():
+    model, state = jc.scenes.chain(n_links=3, length=1.5, mass=0.6, angle=0.7, dtype=np.float64)
+    state = state.replace(x=state.x.at[1:].multiply(1.03))      # start off the constraint manifold
+    target = np.asarray(jc.rollout(model, state, jc.PGS(8), 1 / 120, 40)[1].x) + 0.05
+
+    def loss(rest, beta, inv_mass, x0, v0, gravity):
+        m = model.replace(rest_length=rest, inv_mass=inv_mass, gravity=gravity)
+        _, tr = jc.rollout(m, state.replace(x=x0, v=v0), jc.PGS(iterations=8, beta=beta), 1 / 120, 40)
+        return jnp.mean((tr.x - target) ** 2)
+
+    args = [model.rest_length, jnp.asarray(0.2), model.inv_mass, state.x, state.v + 0.1, model.gravity]
+    grads = jax.jit(jax.grad(loss, argnums=tuple(range(6))))(*args)
+    floss = jax.jit(loss)
+    for k, (a, g) in enumerate(zip(args, grads)):
+        def f(val, k=k):
+            b = list(args)
+            b[k] = jnp.asarray(val)
+            return float(floss(*b))
+        fd = _fd(f, a)
+        if k in (2, 3, 4):       # the fixed pivot's inverse mass / position: gradient masked by design
+            fd, g = fd[1:], np.asarray(g)[1:]
+        np.testing.assert_allclose(np.asarray(g), fd, rtol=1e-5, atol=1e-9, err_msg=f"argument {k}")
+
+
+def test_forward_and_reverse_mode_agree():
+    model, state = jc.scenes.double_pendulum(angles=(0.4, 0.9), dtype=np.float64)
+
+    def f(rest):
+        return jc.rollout(model.replace(rest_length=rest), state, jc.PGS(6), 1 / 240, 30)[0].x
+
+    t = jnp.array([0.3, -0.7])
+    _, jvp = jax.jvp(f, (model.rest_length,), (t,))
+    y, vjp = jax.vjp(f, model.rest_length)
+    ct = jnp.asarray(np.random.default_rng(1).normal(size=y.shape))
+    np.testing.assert_allclose(float(jnp.vdot(ct, jvp)), float(jnp.vdot(vjp(ct)[0], t)), rtol=1e-10)
+
+
+@pytest.mark.parametrize("kind", ["rod", "rope"])
+def test_coincident_particles_give_finite_values_and_gradients(kind):
+    x = np.array([[0.0, 0.0], [0.3, 0.0], [0.3, 0.0]])     # particles 1 and 2 coincide
+    pairs = [(0, 1), (1, 2)]
+    model, state = jc.build(x, [1.0, 1.0, 1.0], rods=pairs if kind == "rod" else None,
+                            ropes=pairs if kind == "rope" else None, fixed=[0], rest_lengths=[0.3, 0.2])
+
+    def loss(rest, beta):
+        _, tr = jc.rollout(model.replace(rest_length=rest), state, jc.PGS(5, beta=beta), 1 / 240, 20)
+        return jnp.sum(tr.x ** 2) + jnp.sum(tr.lam ** 2)
+
+    vg = jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))
+    val, grads = vg(model.rest_length, 0.2)
+    assert np.isfinite(float(val))
+    assert all(np.all(np.isfinite(np.asarray(g))) for g in grads)
+    # zero-length rest lengths too
+    _, (g0, _) = vg(jnp.zeros(2), 0.2)
+    assert np.all(np.isfinite(np.asarray(g0)))
+
+
+def test_solver_built_with_traced_beta_and_vmap_over_beta():
+    model, state = jc.scenes.pendulum(angle=0.5, dtype=np.float64)
+    model = model.replace(rest_length=model.rest_length * 0.9)     # Baumgarte has work to do
+
+    def loss(beta):
+        return jc.rollout(model, state, jc.PGS(iterations=4, beta=beta), 1 / 240, 30)[1].x[-1, 1, 1]
+
+    g = jax.jit(jax.grad(loss))(0.2)
+    floss = jax.jit(loss)
+    fd = (floss(0.2 + 1e-6) - floss(0.2 - 1e-6)) / 2e-6
+    np.testing.assert_allclose(float(g), float(fd), rtol=1e-5)
+    vals = jax.vmap(loss)(jnp.array([0.1, 0.2, 0.3]))
+    np.testing.assert_allclose(np.asarray(vals), [float(floss(b)) for b in (0.1, 0.2, 0.3)], atol=1e-13)
