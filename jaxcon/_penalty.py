@@ -5,6 +5,7 @@ from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 
 from . import _layout as L
 from ._pytree import concrete, pytree_dataclass, static_field
@@ -14,7 +15,8 @@ from ._substeps import substepped
 #: The spring tension is clipped to +- STRETCH_CLIP * stiffness * rest_length (constraints with rest length
 #: > 0). A stable run never comes near it (it is a 1000% stretch, ten times `jc.diagnose`'s violation limit);
 #: above the stability limit it keeps forces bounded, so an unstable run grows only polynomially, stays
-#: finite (with finite gradients) and is reported by `jc.diagnose` instead of overflowing to inf / NaN.
+#: finite and is reported by `jc.diagnose` instead of overflowing to inf / NaN; once any spring is stretched
+#: past the clip, the forces stop carrying gradient (stop_gradient), so derivatives stay finite too.
 STRETCH_CLIP = 10.0
 
 
@@ -76,15 +78,24 @@ class Penalty(Solver):
         c = jnp.asarray(self.damping, dtype)
 
         def substep(x, v, _, h):
-            imp = []
-            frames = []
+            geo = []
             for blk, rest in zip(topo.blocks, sys.rest):
                 xi, xj = L.gather_pair(topo, blk, x)
-                vi, vj = L.gather_pair(topo, blk, v)
                 wi, wj = L.gather_pair(topo, blk, sys.w)
+                C = L.safe_norm(xj - xi, axis=0)[0] - rest
+                geo.append(((rest > 0) & (C > STRETCH_CLIP * rest), wi[0], wj[0]))
+            # Past the clip the run has diverged (diagnose flags it). Such a substep passes no derivative
+            # back, so the gradient of a diverged run stays finite instead of overflowing through the blow-up.
+            blown = jnp.any(jnp.stack([jnp.any(b) for b, _, _ in geo]))
+            x = jnp.where(blown, lax.stop_gradient(x), x)
+            v = jnp.where(blown, lax.stop_gradient(v), v)
+            for b, (blk, rest) in enumerate(zip(topo.blocks, sys.rest)):
+                xi, xj = L.gather_pair(topo, blk, x)
+                vi, vj = L.gather_pair(topo, blk, v)
                 dist, n = L.safe_norm(xj - xi, axis=0)
-                C = dist - rest
-                u = jnp.sum((vj - vi) * n, axis=0)
+                geo[b] = (n, geo[b][1], geo[b][2], dist - rest, jnp.sum((vj - vi) * n, axis=0), rest)
+            imp = []
+            for blk, (n, wi, wj, C, u, rest) in zip(topo.blocks, geo):
                 T = k * C + c * u
                 cap = STRETCH_CLIP * k * rest
                 T = jnp.where(rest > 0, jnp.clip(T, -cap, cap), T)
@@ -92,9 +103,8 @@ class Penalty(Solver):
                     taut = jnp.where(C > 0, jnp.maximum(T, 0), 0)
                     T = taut if blk.all_rope else jnp.where(blk.rope.array, taut, T)
                 imp.append(T * h)
-                frames.append((n, wi[0], wj[0]))
             v = sys.apply_gravity(v, h)
-            for blk, (n, wi, wj), p in zip(topo.blocks, frames, imp):
+            for blk, (n, wi, wj, *_), p in zip(topo.blocks, geo, imp):
                 q = n * p
                 v = v + L.scatter_pair(topo, blk, wi * q, -wj * q)
             return x + h * v, v, tuple(imp)
