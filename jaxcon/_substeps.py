@@ -1,0 +1,28 @@
+"""Shared substep loop for solvers whose per-substep warm start is the previous substep's impulse."""
+from __future__ import annotations
+
+import operator
+
+import jax.numpy as jnp
+from jax import lax
+
+
+def substepped(substep, substeps: int, x, v, lam, dt):
+    """Run `substep(x, v, lam_ws, h) -> (x, v, lam_h)` `substeps` times with h = dt / substeps.
+
+    The step's warm start `lam` (an impulse over dt) is split evenly over the substeps; the returned impulse
+    is the sum over the substeps, so it stays an impulse over dt (N s). Static trip count (reverse mode works).
+    """
+    h = dt / substeps
+    if substeps == 1:
+        return substep(x, v, lam, h)
+    ws = tuple(l / substeps for l in lam)
+    zero = tuple(jnp.zeros_like(l) for l in lam)
+
+    def body(_, carry):
+        x, v, ws, total = carry
+        x, v, ws = substep(x, v, ws, h)
+        return x, v, ws, tuple(map(operator.add, total, ws))
+
+    x, v, _, total = lax.fori_loop(0, substeps, body, (x, v, ws, zero))
+    return x, v, total
