@@ -3,10 +3,16 @@ from . import scenes as scenes
 from ._model import Model as Model, State as State, Trajectory as Trajectory, build as build
 from ._sim import rollout as rollout, step as step
 from ._solver import PGS as PGS, Solver as Solver
-from ._diagnostics import energy as energy, energy_drift as energy_drift, kinetic_energy as kinetic_energy, violation as violation
-
-__version__ = "0.1.0"
-from ._diagnose import Diagnosis as Diagnosis, diagnose as diagnose
-from ._penalty import Penalty as Penalty
 from ._jacobi import Jacobi as Jacobi
 from ._xpbd import XPBD as XPBD
+from ._penalty import Penalty as Penalty
+from ._diagnostics import (
+    energy as energy,
+    energy_drift as energy_drift,
+    kinetic_energy as kinetic_energy,
+    violation as violation,
+)
+from ._diagnose import Diagnosis as Diagnosis, diagnose as diagnose
+from ._fit import FitResult as FitResult, fit as fit
+
+__version__ = "0.1.0"

@@ -65,8 +65,8 @@ def step(model: Model, state: State, solver: Solver, dt) -> State:
     return _step_jit(model, state, solver, dt)
 
 
-@functools.partial(jax.jit, static_argnames=("steps", "save_every"))
-def _rollout_jit(model, state, solver, dt, steps, save_every):
+@functools.partial(jax.jit, static_argnames=("steps", "save_every", "checkpoint"))
+def _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint=None):
     sys, x, v, lam = _enter(model, state)
     dt = jnp.asarray(dt, x.dtype)
 
@@ -80,22 +80,57 @@ def _rollout_jit(model, state, solver, dt, steps, save_every):
             carry = lax.fori_loop(0, save_every, one, carry)
         return carry, carry
 
-    (x, v, lam), (xs, vs, lams) = lax.scan(body, (x, v, lam), length=steps // save_every)
+    def records(carry, n):
+        return lax.scan(body, carry, length=n)
+
+    carry = (x, v, lam)
+    n_rec = steps // save_every
+    if checkpoint is None:
+        carry, recs = records(carry, n_rec)
+    else:
+        # Outer scan over chunks of `checkpoint` steps, each chunk rematerialised in the backward pass:
+        # reverse mode keeps the carry at every chunk boundary plus one chunk's residuals.
+        per = checkpoint // save_every
+        n_chunks, rest = divmod(n_rec, per)
+        chunk = jax.checkpoint(lambda c: records(c, per))
+        parts = []
+        if n_chunks:
+            carry, recs = lax.scan(lambda c, _: chunk(c), carry, length=n_chunks)
+            parts.append(jax.tree.map(lambda a: a.reshape((n_chunks * per,) + a.shape[2:]), recs))
+        if rest:
+            carry, recs = jax.checkpoint(lambda c: records(c, rest))(carry)
+            parts.append(recs)
+        recs = parts[0] if len(parts) == 1 else jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
+    (x, v, lam), (xs, vs, lams) = carry, recs
     t = model.topology
     final = State(L.particles_out(t, x), L.particles_out(t, v), L.constraints_out(t, lam))
     traj = Trajectory(L.particles_out(t, xs), L.particles_out(t, vs), L.constraints_out(t, lams))
     return final, traj
 
 
-def rollout(model: Model, state: State, solver: Solver, dt, steps: int, *, save_every: int = 1):
+def rollout(model: Model, state: State, solver: Solver, dt, steps: int, *, save_every: int = 1,
+            checkpoint: int | None = None):
     """Run `steps` steps of length `dt` seconds.
 
     Returns (final_state, traj): traj.x, traj.v [steps // save_every, n, dim] and traj.lam
     [steps // save_every, m], recorded after every `save_every`-th step (default: every step; lam is the
     impulse of that step, N s, > 0 pulling). Works under jax.jit, jax.grad and jax.vmap.
+
+    checkpoint: None (default) or a number of steps K, a multiple of `save_every`. The rollout then runs as
+      an outer scan over chunks of K steps whose body is wrapped in `jax.checkpoint`, so reverse mode stores
+      the state at every chunk boundary and one chunk's intermediates (O(steps / K + K) per-step residuals
+      instead of O(steps)), at the price of recomputing each chunk once in the backward pass. Values and
+      gradients are unchanged. sqrt(steps) is a good K. A last partial chunk is allowed.
     """
     _check_call("rollout", model, state, solver, dt, steps)
     _check_int("rollout", "save_every", save_every, 1)
     if steps % save_every:
         raise ValueError(f"rollout: `steps` ({steps}) must be a multiple of `save_every` ({save_every})")
-    return _rollout_jit(model, state, solver, dt, steps, save_every)
+    if checkpoint is not None:
+        _check_int("rollout", "checkpoint", checkpoint, 1)
+        if checkpoint % save_every:
+            raise ValueError(
+                f"rollout: `checkpoint` ({checkpoint}) must be a multiple of `save_every` ({save_every})")
+        if checkpoint >= steps:
+            checkpoint = steps
+    return _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint)

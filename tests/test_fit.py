@@ -1,0 +1,136 @@
+"""Acceptance tests of jc.fit: data made here with known parameters, recovered from noisy positions."""
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+import jaxcon as jc
+
+DT = 1 / 240
+
+
+def _chain_experiment(seed=0, n=20, beta=0.2):
+    """A 20-link chain whose rest lengths are each perturbed by up to 10%. The initial positions are the true
+    geometry jittered by 3 mm per particle, so the first steps are a Baumgarte correction of a constraint error
+    at rate beta (beta is not identifiable from motion that satisfies the constraints)."""
+    rng = np.random.default_rng(seed)
+    nominal = np.full(n, 2.0 / n)
+    true_L = nominal * (1 + rng.uniform(-0.1, 0.1, n))
+    a = 0.3
+    x = np.concatenate([[np.zeros(2)], np.cumsum(true_L[:, None] * np.array([np.sin(a), -np.cos(a)]), 0)])
+    x[1:] += 0.003 * rng.standard_normal(x[1:].shape)
+    model, state = jc.build(x, np.r_[1.0, np.full(n, 1.0 / n)], rods=[(k, k + 1) for k in range(n)],
+                            fixed=[0], rest_lengths=true_L)
+    _, tr = jc.rollout(model, state, jc.PGS(iterations=10, beta=beta), DT, 240)
+    obs = tr.x + 1e-3 * rng.standard_normal(tr.x.shape)   # 1 s, 1 mm noise
+    return model.replace(rest_length=nominal), state, true_L, obs
+
+
+def test_fit_chain_rest_lengths_and_beta():
+    guess, state, true_L, obs = _chain_experiment()
+    t0 = time.perf_counter()
+    res = jc.fit(guess, state, jc.PGS(iterations=10, beta=0.3), DT, obs, ("rest_length", "beta"),
+                 optimizer="lm", steps=40, patience=5, progress=False)
+    elapsed = time.perf_counter() - t0
+    assert elapsed < 60, elapsed
+    assert np.max(np.abs(res.model.rest_length / true_L - 1)) < 0.01
+    assert abs(float(res.solver.beta) / 0.2 - 1) < 0.01
+    # the loss reached the noise floor (1 mm^2 per coordinate), from well above it
+    assert res.history[0] > 50e-6 and res.history.min() < 1.1e-6
+    assert res.iterations == len(res.history) <= 40
+    # the fitted model is a valid model with the same topology
+    assert res.model.topology == guess.topology and isinstance(res.solver, jc.PGS)
+
+
+def test_fit_with_adam_decreases_loss_and_compiles_once():
+    guess, state, true_L, obs = _chain_experiment(n=5)
+    traces = []
+    orig = jc.PGS._step
+
+    def counting(self, *a):
+        traces.append(1)
+        return orig(self, *a)
+
+    jc.PGS._step = counting
+    try:
+        res = jc.fit(guess, state, jc.PGS(iterations=10, beta=0.2), DT, obs[:60], ("rest_length",),
+                     optimizer=optax.adam(1e-3), steps=30, patience=100, progress=False)
+    finally:
+        jc.PGS._step = orig
+    # one trace for the update function (value and gradient share the forward trace), not one per iteration
+    assert 1 <= len(traces) <= 2, len(traces)
+    assert res.iterations == 30 and not res.converged
+    assert res.history[-1] < 0.5 * res.history[0]
+    err0 = np.abs(guess.rest_length / true_L - 1).max()
+    assert np.abs(res.model.rest_length / true_L - 1).max() < err0
+
+
+def test_fit_observed_subset_batch_and_sample_steps():
+    """Two trajectories from two initial states, observing particles 2 and 5 every 4th step; fit inv_mass of
+    the end bob and gravity."""
+    model, state = jc.scenes.chain(n_links=5, length=1.0, mass=1.0, angle=0.8, dtype=np.float64)
+    truth = model.replace(inv_mass=model.inv_mass.at[5].set(1 / 0.6), gravity=jnp.array([0.0, -9.5]))
+    states = jax.tree.map(lambda *a: jnp.stack(a), state,
+                          state.replace(v=state.v.at[3].set(jnp.array([0.5, 0.0]))))
+    solver = jc.PGS(iterations=20, beta=0.2)
+    _, tr = jax.vmap(lambda s: jc.rollout(truth, s, solver, DT, 120))(states)
+    ss = np.arange(4, 121, 4)
+    obs = tr.x[:, ss - 1][:, :, [2, 5]]
+    res = jc.fit(model, states, solver, DT, obs, ("inv_mass", "gravity"), observed_particles=[2, 5],
+                 sample_steps=ss, optimizer="lm", steps=30, patience=5, progress=False)
+    # only mass ratios are observable (scaling every mass leaves the motion unchanged)
+    w, wt = np.asarray(res.model.inv_mass), np.asarray(truth.inv_mass)
+    np.testing.assert_allclose(w[1:] / w[1], wt[1:] / wt[1], rtol=1e-4)
+    assert res.model.inv_mass[0] == 0       # the fixed pivot stays fixed (log transform keeps zeros)
+    np.testing.assert_allclose(res.model.gravity, truth.gravity, atol=1e-4)
+
+
+def test_fit_double_pendulum_lengths_with_windows():
+    """A chaotic double pendulum observed for 2 s: fitted with windows of 0.25 s (multiple shooting)."""
+    rng = np.random.default_rng(1)
+    true_lengths = (0.9, 0.6)
+    model, state = jc.scenes.double_pendulum(lengths=true_lengths, masses=(1.0, 1.0), angles=(1.5, 2.5),
+                                             dtype=np.float64)
+    solver = jc.PGS(iterations=10, beta=0.2)
+    _, tr = jc.rollout(model, state, solver, DT, 480)
+    obs = tr.x + 1e-3 * rng.standard_normal(tr.x.shape)
+    guess = model.replace(rest_length=jnp.array([1.0, 0.5]))
+    res = jc.fit(guess, state, solver, DT, obs, ("rest_length",), window=60, optimizer="lm", steps=40,
+                 patience=5, progress=False)
+    np.testing.assert_allclose(res.model.rest_length, true_lengths, rtol=0.01)
+    assert res.window_states is not None and res.window_states.x.shape == (7, 3, 2)
+
+
+@pytest.mark.benchmark
+@pytest.mark.xfail(reason="not reached yet: adam from the nominal lengths stalls at the initial error (~2.5%)",
+                   strict=False)
+def test_fit_cloth_rest_lengths():
+    """16x16 cloth, every edge's rest length perturbed by up to 5%, all particles observed for 1 s."""
+    rng = np.random.default_rng(2)
+    model, state = jc.scenes.cloth(nx=16, ny=16, size=1.0, mass=1.0, dtype=np.float64)
+    true_L = model.rest_length * (1 + rng.uniform(-0.05, 0.05, model.n_constraints))
+    truth = model.replace(rest_length=true_L)
+    solver = jc.PGS(iterations=10, beta=0.2)
+    _, tr = jc.rollout(truth, state, solver, DT, 240, save_every=4)
+    obs = tr.x + 1e-3 * rng.standard_normal(tr.x.shape)
+    res = jc.fit(model, state, solver, DT, obs, ("rest_length",), sample_steps=np.arange(4, 241, 4),
+                 optimizer=optax.adam(2e-3), steps=150, patience=20, progress=False)
+    err = np.abs(res.model.rest_length / true_L - 1)
+    err0 = np.abs(model.rest_length / true_L - 1)
+    assert np.median(err) < 0.02 and np.median(err) < 0.5 * np.median(err0), (np.median(err), np.median(err0))
+
+
+def test_fit_validation():
+    model, state = jc.scenes.pendulum(dtype=np.float64)
+    obs = np.zeros((10, 2, 2))
+    with pytest.raises(ValueError, match="unknown parameter 'length'"):
+        jc.fit(model, state, jc.PGS(), DT, obs, ("length",), progress=False)
+    with pytest.raises(ValueError, match="observed_particles"):
+        jc.fit(model, state, jc.PGS(), DT, obs, observed_particles=[1], progress=False)
+    with pytest.raises(ValueError, match="window"):
+        jc.fit(model, state, jc.PGS(), DT, obs, window=3, progress=False)
+    with pytest.raises(ValueError, match="sample_steps"):
+        jc.fit(model, state, jc.PGS(), DT, obs, sample_steps=np.arange(10), progress=False)
