@@ -6,3 +6,4 @@ from ._solver import PGS as PGS, Solver as Solver
 from ._diagnostics import energy as energy, energy_drift as energy_drift, kinetic_energy as kinetic_energy, violation as violation
 
 __version__ = "0.1.0"
+from ._direct import Direct as Direct
