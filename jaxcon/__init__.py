@@ -7,3 +7,5 @@ from ._diagnostics import energy as energy, energy_drift as energy_drift, kineti
 
 __version__ = "0.1.0"
 from ._direct import Direct as Direct
+from ._softstep import SoftStep as SoftStep
+from ._rattle import RATTLE as RATTLE
