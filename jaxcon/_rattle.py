@@ -11,6 +11,10 @@ from . import _layout as L
 from ._pytree import pytree_dataclass, static_field
 from ._solver import Solver, _check_int, _check_scalar, clamp_ropes, frames
 
+# Sweep loops of at most this many iterations are unrolled (lets XLA fuse the small per-sweep ops; a few
+# times faster on small systems, same result).
+_UNROLL = 8
+
 
 @pytree_dataclass
 class RATTLE(Solver):
@@ -77,7 +81,7 @@ class RATTLE(Solver):
                 v = v + dp / h
             return x, v, tuple(mu)
 
-        x, v, mu = lax.fori_loop(0, self.iterations, shake, (x, v, zero))
+        x, v, mu = lax.fori_loop(0, self.iterations, shake, (x, v, zero), unroll=self.iterations <= _UNROLL)
 
         v = sys.apply_gravity(v, h / 2)
         fr1 = frames(sys, x)
@@ -98,5 +102,5 @@ class RATTLE(Solver):
                 v = v + L.scatter_pair(topo, blk, f.wi * p, -f.wj * p)
             return v, tuple(lam)
 
-        v, lam2 = lax.fori_loop(0, self.iterations, project, (v, zero))
+        v, lam2 = lax.fori_loop(0, self.iterations, project, (v, zero), unroll=self.iterations <= _UNROLL)
         return x, v, tuple(map(operator.add, (m / h for m in mu), lam2))
