@@ -22,11 +22,13 @@ def is_simple_chain(topo) -> bool:
     return topo.m == topo.n - 1 and bool(np.all(lo == k)) and bool(np.all(hi == k + 1))
 
 
-def _regularisation(dtype):
-    # Relative diagonal regularisation of J M^-1 J^T: 1e3 machine epsilons (2e-13 in float64, 1.2e-4 in
-    # float32). It keeps redundant constraints (a duplicated rod: a singular matrix) solvable, splitting the
-    # impulse equally between the copies, and changes a well-posed solution by that relative amount only.
-    return 1e3 * jnp.finfo(dtype).eps
+def _regularisation(value, dtype):
+    # Relative diagonal regularisation of J M^-1 J^T, at least 1e3 machine epsilons (2e-13 in float64,
+    # 1.2e-4 in float32). It keeps redundant constraints (a duplicated rod: a singular matrix) solvable,
+    # splitting the impulse equally between the copies, damps the nearly redundant directions of
+    # over-constrained meshes (cloth with shear rods: with 2e-13 the float64 solve blows up at dt = 1/60,
+    # with 1e-6 it behaves like PGS) and changes a well-posed solution by about that relative amount only.
+    return jnp.maximum(jnp.asarray(value, dtype), 1e3 * jnp.finfo(dtype).eps)
 
 
 @pytree_dataclass
@@ -45,8 +47,9 @@ class Direct(Solver):
     joins particles k and k+1 in user order, as in `jc.scenes.chain`) it is tridiagonal and solved in O(n)
     with `jax.lax.linalg.tridiagonal_solve`; otherwise densely with `jnp.linalg.solve` (O(m^3): meant for
     small systems). Guards: a constraint with no defined direction (coincident particles) or no mobility
-    (both particles fixed) gets an identity row and lam = 0; the diagonal carries a relative regularisation of
-    1e3 machine epsilons so redundant constraints (a duplicated rod) stay solvable. Ropes are not supported
+    (both particles fixed) gets an identity row and lam = 0; the diagonal is scaled by 1 + `regularisation`
+    (at least 1e3 machine epsilons) so redundant constraints (a duplicated rod, cloth shear rods) stay
+    solvable. Ropes are not supported
     (a unilateral constraint needs a complementarity solve): use PGS, SoftStep or RATTLE for ropes.
 
     The warm-start input is not used (the solve is exact).
@@ -55,15 +58,19 @@ class Direct(Solver):
       beta: Baumgarte factor in [0, 1], a differentiable leaf.
       substeps: (sub)steps per step, static, >= 1.
       method: 'auto' (tridiagonal for a simple chain, else dense), 'dense' or 'tridiagonal' (static).
+      regularisation: relative diagonal regularisation (constraint force mixing), >= 0, a leaf; values below
+        1e3 machine epsilons are raised to that.
     """
 
     beta: Any = 0.2
     substeps: int = static_field(default=1)
     method: str = static_field(default="auto")
+    regularisation: Any = 1e-6
 
     def __post_init__(self):
         _check_scalar("Direct", "beta", self.beta, 0.0, 1.0)
         _check_int("Direct", "substeps", self.substeps, 1)
+        _check_scalar("Direct", "regularisation", self.regularisation, 0.0, 1.0)
         if self.method not in _METHODS:
             raise ValueError(f"Direct: `method` must be one of {_METHODS}, got {self.method!r}")
 
@@ -88,7 +95,7 @@ class Direct(Solver):
         beta = jnp.asarray(self.beta, dtype)
         w = sys.w.reshape(-1)
         rest = L.constraints_out(topo, sys.rest)
-        eps = _regularisation(dtype)
+        eps = _regularisation(self.regularisation, dtype)
 
         def substep(x, v, _lam, h):
             v = sys.apply_gravity(v, h)
