@@ -6,6 +6,9 @@ from ._solver import PGS as PGS, Solver as Solver
 from ._jacobi import Jacobi as Jacobi
 from ._xpbd import XPBD as XPBD
 from ._penalty import Penalty as Penalty
+from ._direct import Direct as Direct
+from ._softstep import SoftStep as SoftStep
+from ._rattle import RATTLE as RATTLE
 from ._diagnostics import (
     energy as energy,
     energy_drift as energy_drift,

@@ -1,7 +1,7 @@
 """Solver interface, the shared per-constraint geometry, and the PGS / sequential-impulse solver."""
 from __future__ import annotations
 
-import operator
+import functools
 from typing import Any, NamedTuple
 
 import jax.numpy as jnp
@@ -11,6 +11,7 @@ from jax import lax
 from . import _layout as L
 from ._model import Model
 from ._pytree import concrete, pytree_dataclass, static_field
+from ._substeps import substepped
 from ._topology import Topology
 
 Array = Any
@@ -200,16 +201,4 @@ class PGS(Solver):
         return x + h * v, v, lam
 
     def _step(self, sys, x, v, lam, dt):
-        h = dt / self.substeps
-        if self.substeps == 1:
-            return self._substep(sys, x, v, lam, h)
-        ws = tuple(l / self.substeps for l in lam)
-        zero = tuple(jnp.zeros_like(l) for l in lam)
-
-        def body(_, carry):
-            x, v, ws, total = carry
-            x, v, ws = self._substep(sys, x, v, ws, h)
-            return x, v, ws, tuple(map(operator.add, total, ws))
-
-        x, v, _, total = lax.fori_loop(0, self.substeps, body, (x, v, ws, zero))
-        return x, v, total
+        return substepped(functools.partial(self._substep, sys), self.substeps, x, v, lam, dt)
