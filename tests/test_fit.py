@@ -104,23 +104,28 @@ def test_fit_double_pendulum_lengths_with_windows():
     assert res.window_states is not None and res.window_states.x.shape == (7, 3, 2)
 
 
-@pytest.mark.benchmark
-@pytest.mark.xfail(reason="not reached yet: adam from the nominal lengths stalls at the initial error (~2.5%)",
-                   strict=False)
 def test_fit_cloth_rest_lengths():
-    """16x16 cloth, every edge's rest length perturbed by up to 5%, all particles observed for 1 s."""
-    rng = np.random.default_rng(2)
+    """16x16 cloth (930 edges), every edge's rest length perturbed by up to 5%, all particles observed for 1 s
+    with 1 mm noise. The cloth is over-constrained (930 edges, 762 degrees of freedom), so lengths are only
+    partly identifiable from motion alone. The recipe: start each edge at its median observed length, then
+    refine with a windowed fit (short segments keep the loss smooth). Data and fit use XPBD with substeps, a
+    solver that keeps the cloth near its rest lengths (PGS(10) stretches it by a median 2.7% and the
+    observed lengths then say little)."""
+    rng = np.random.default_rng(0)
     model, state = jc.scenes.cloth(nx=16, ny=16, size=1.0, mass=1.0, dtype=np.float64)
     true_L = model.rest_length * (1 + rng.uniform(-0.05, 0.05, model.n_constraints))
-    truth = model.replace(rest_length=true_L)
-    solver = jc.PGS(iterations=10, beta=0.2)
-    _, tr = jc.rollout(truth, state, solver, DT, 240, save_every=4)
-    obs = tr.x + 1e-3 * rng.standard_normal(tr.x.shape)
-    res = jc.fit(model, state, solver, DT, obs, ("rest_length",), sample_steps=np.arange(4, 241, 4),
-                 optimizer=optax.adam(2e-3), steps=150, patience=20, progress=False)
-    err = np.abs(res.model.rest_length / true_L - 1)
-    err0 = np.abs(model.rest_length / true_L - 1)
-    assert np.median(err) < 0.02 and np.median(err) < 0.5 * np.median(err0), (np.median(err), np.median(err0))
+    solver = jc.XPBD(iterations=1, compliance=0.0, substeps=4)
+    _, tr = jc.rollout(model.replace(rest_length=true_L), state, solver, DT, 240)
+    obs = np.asarray(tr.x) + 1e-3 * rng.standard_normal(tr.x.shape)
+    i, j = model.pairs.T
+    init = np.median(np.linalg.norm(obs[:, j] - obs[:, i], axis=-1), axis=0)
+    res = jc.fit(model.replace(rest_length=jnp.asarray(init)), state, solver, DT, obs, ("rest_length",),
+                 window=12, optimizer=optax.adam(1e-3), steps=12, patience=12, progress=False)
+    err = np.abs(np.asarray(res.model.rest_length) / np.asarray(true_L) - 1)
+    err_nominal = np.abs(np.asarray(model.rest_length) / np.asarray(true_L) - 1)
+    assert np.median(err) < 0.02, np.median(err)
+    assert np.median(err) < 0.5 * np.median(err_nominal), (np.median(err), np.median(err_nominal))
+    assert res.history[-1] < res.history[0]
 
 
 def test_fit_validation():
