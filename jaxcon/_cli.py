@@ -108,12 +108,15 @@ def demo(args) -> int:
 
 
 def _bench_cases(small: bool):
-    n_cloth = (8, 16) if small else (32, 64)
+    if small:
+        return [("double_pendulum", lambda d: scenes.double_pendulum(angles=(0.5, 0.5), dtype=d), 480),
+                ("chain_20", lambda d: scenes.chain(20, 2.0, 0.2, dtype=d), 100),
+                ("cloth_8x8", lambda d: scenes.cloth(8, 8, dtype=d), 10)]
     return [
-        ("double_pendulum", lambda d: scenes.double_pendulum(angles=(0.5, 0.5), dtype=d), 2000 if small else 20000),
-        ("chain_100", lambda d: scenes.chain(100, 5.0, 1.0, dtype=d), 200 if small else 2000),
-        (f"cloth_{n_cloth[0]}x{n_cloth[0]}", lambda d: scenes.cloth(n_cloth[0], n_cloth[0], dtype=d), 20 if small else 200),
-        (f"cloth_{n_cloth[1]}x{n_cloth[1]}", lambda d: scenes.cloth(n_cloth[1], n_cloth[1], dtype=d), 10 if small else 50),
+        ("double_pendulum", lambda d: scenes.double_pendulum(angles=(0.5, 0.5), dtype=d), 20000),
+        ("chain_100", lambda d: scenes.chain(100, 5.0, 1.0, dtype=d), 2000),
+        ("cloth_32x32", lambda d: scenes.cloth(32, 32, dtype=d), 200),
+        ("cloth_64x64", lambda d: scenes.cloth(64, 64, dtype=d), 50),
     ]
 
 
