@@ -1,0 +1,252 @@
+"""Generate notebooks/*.ipynb (nbformat 4, outputs stripped) from the cell sources below.
+
+    python notebooks/_make.py
+
+Edit the cells here, not the .ipynb files. Each notebook reads JAXCON_NOTEBOOK_SMALL=1 to shrink its sizes
+(tests/test_notebooks.py runs them that way).
+"""
+import json
+import pathlib
+
+HERE = pathlib.Path(__file__).parent
+
+SETUP = '''import os
+import time
+
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
+import matplotlib.pyplot as plt
+import numpy as np
+
+import jaxcon as jc
+
+SMALL = os.environ.get("JAXCON_NOTEBOOK_SMALL") == "1"
+F64 = np.float64'''
+
+NB01 = [
+    ("md", "# 01 - Constraints: stiff springs vs multipliers\n\nA pendulum and a rope solved by stiff springs "
+           "(`jc.Penalty`) and by Lagrange multipliers (`jc.PGS`, and `jc.Direct` where available). The "
+           "multiplier is the constraint impulse over a step: `lam / dt` is the rod tension in newtons "
+           "(> 0 pulls)."),
+    ("code", SETUP),
+    ("code", '''dt = 1 / 240
+T = 0.5 if SMALL else 3.0
+steps = int(round(T / dt))
+t = dt * np.arange(1, steps + 1)
+
+def solvers_for(model):
+    pen = jc.Penalty(stiffness=1e4, damping=5.0)
+    sub = int(np.ceil(dt / (0.5 * pen.stability_limit(model))))
+    out = {f"Penalty k=1e4 ({sub} substeps)": jc.Penalty(stiffness=1e4, damping=5.0, substeps=sub),
+           "PGS 1 it": jc.PGS(iterations=1), "PGS 5 it": jc.PGS(iterations=5), "PGS 20 it": jc.PGS(iterations=20)}
+    if hasattr(jc, "Direct"):
+        out["Direct"] = jc.Direct()
+    return out'''),
+    ("md", "## Pendulum (rod) and rope: length error over time"),
+    ("code", '''fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+for ax, kind in zip(axes, ("rod", "rope")):
+    model, state = jc.scenes.pendulum(length=1.0, mass=1.0, angle=1.0, kind=kind, dtype=F64)
+    for name, solver in solvers_for(model).items():
+        _, traj = jc.rollout(model, state, solver, dt, steps)
+        viol = np.asarray(jc.violation(model, traj.x))[:, 0]
+        ax.semilogy(t, np.maximum(viol, 1e-16), label=name)
+    ax.set_title(f"Pendulum on a {kind}, released at 1 rad")
+    ax.set_xlabel("time (s)")
+axes[0].set_ylabel("relative length error |d - L| / L")
+axes[0].legend(fontsize=8)
+plt.tight_layout()'''),
+    ("md", "## The multiplier is the tension\n\nHanging at rest, `lam / dt = m g`. Swinging, the rod tension "
+           "is `m (g cos a + L w^2)` with `a` the angle from the vertical and `w` the angular velocity."),
+    ("code", '''m, Lr, g = 1.0, 1.0, 9.81
+model, state = jc.scenes.pendulum(length=Lr, mass=m, angle=0.0, dtype=F64)
+_, traj = jc.rollout(model, state, jc.PGS(iterations=20), dt, 50)
+print("at rest: lam/dt =", float(traj.lam[-1, 0]) / dt, "N;  m g =", m * g, "N")
+
+model, state = jc.scenes.pendulum(length=Lr, mass=m, angle=1.0, dtype=F64)
+fig, ax = plt.subplots(figsize=(7, 4))
+for name, solver in solvers_for(model).items():
+    _, traj = jc.rollout(model, state, solver, dt, steps)
+    ax.plot(t, np.asarray(traj.lam[:, 0]) / dt, label=f"lam/dt, {name}", lw=1)
+x, v = np.asarray(traj.x[:, 1]), np.asarray(traj.v[:, 1])
+a = np.arctan2(x[:, 0], -x[:, 1])
+w = (x[:, 0] * v[:, 1] - x[:, 1] * v[:, 0]) / np.sum(x ** 2, -1)
+ax.plot(t, m * (g * np.cos(a) + Lr * w ** 2), "k--", label="m (g cos a + L w^2)")
+ax.set_title("Pendulum rod tension, released at 1 rad")
+ax.set_xlabel("time (s)"); ax.set_ylabel("tension (N)")
+ax.legend(fontsize=8)
+plt.tight_layout()'''),
+    ("md", "## Baumgarte stabilisation\n\nPGS works on velocities; without a position feedback (`beta = 0`) "
+           "the length error of a swinging pendulum drifts. `beta` feeds `beta C / dt` back into the "
+           "velocity target."),
+    ("code", '''model, state = jc.scenes.pendulum(length=1.0, angle=1.5, dtype=F64)
+T2 = 1.0 if SMALL else 10.0
+n2 = int(round(T2 / dt))
+fig, ax = plt.subplots(figsize=(7, 4))
+for beta in (0.0, 0.2, 0.8):
+    _, traj = jc.rollout(model, state, jc.PGS(iterations=10, beta=beta), dt, n2)
+    viol = np.asarray(jc.violation(model, traj.x))[:, 0]
+    ax.semilogy(dt * np.arange(1, n2 + 1), np.maximum(viol, 1e-16), label=f"beta = {beta}")
+ax.set_title("Constraint drift of a pendulum, PGS 10 iterations, dt = 1/240 s")
+ax.set_xlabel("time (s)"); ax.set_ylabel("relative length error |d - L| / L")
+ax.legend()
+plt.tight_layout()'''),
+]
+
+NB02 = [
+    ("md", "# 02 - Speed vs error\n\nThe double pendulum against a SciPy reference (reduced coordinates, "
+           "DOP853 at rtol = atol = 1e-12), for every solver in `jc`. Error: largest bob position error over "
+           "the run; cost: wall time per simulated second, after compilation. Timings are from whatever "
+           "machine runs the notebook (shared machines are noisy)."),
+    ("code", SETUP + '''
+from scipy.integrate import solve_ivp'''),
+    ("code", '''L1 = L2 = 1.0; M1 = M2 = 1.0; G = 9.81
+ANGLES = (1.0, 0.5)
+T = 0.5 if SMALL else 2.0
+
+def rhs(t, s):
+    a1, a2, w1, w2 = s
+    d = a1 - a2
+    den = 2 * M1 + M2 - M2 * np.cos(2 * d)
+    dw1 = (-G * (2 * M1 + M2) * np.sin(a1) - M2 * G * np.sin(a1 - 2 * a2)
+           - 2 * np.sin(d) * M2 * (w2 ** 2 * L2 + w1 ** 2 * L1 * np.cos(d))) / (L1 * den)
+    dw2 = (2 * np.sin(d) * (w1 ** 2 * L1 * (M1 + M2) + G * (M1 + M2) * np.cos(a1)
+                            + w2 ** 2 * L2 * M2 * np.cos(d))) / (L2 * den)
+    return [w1, w2, dw1, dw2]
+
+def reference(times):
+    sol = solve_ivp(rhs, (0, times.max()), [ANGLES[0], ANGLES[1], 0, 0], method="DOP853", t_eval=times,
+                    rtol=1e-12, atol=1e-12)
+    a1, a2 = sol.y[0], sol.y[1]
+    p1 = np.stack([L1 * np.sin(a1), -L1 * np.cos(a1)], -1)
+    return np.stack([p1, p1 + np.stack([L2 * np.sin(a2), -L2 * np.cos(a2)], -1)], 1)'''),
+    ("code", '''def candidates():
+    c = {}
+    for it in (2, 10, 40):
+        c[f"PGS {it} it"] = jc.PGS(iterations=it)
+    c["Jacobi 20 it"] = jc.Jacobi()
+    c["XPBD 10 substeps"] = jc.XPBD(substeps=10)
+    c["Penalty k=1e6, 20 substeps"] = jc.Penalty(stiffness=1e6, damping=10.0, substeps=20)
+    for name in ("Direct", "SoftStep", "RATTLE"):
+        if hasattr(jc, name):
+            c[name] = getattr(jc, name)()
+    return c
+
+dts = [1 / 120, 1 / 480] if SMALL else [1 / 60, 1 / 120, 1 / 240, 1 / 480, 1 / 960]
+model, state = jc.scenes.double_pendulum(angles=ANGLES, dtype=F64)
+results = {}
+for name, solver in candidates().items():
+    pts = []
+    for dt in dts:
+        steps = int(round(T / dt))
+        ref = reference(dt * np.arange(1, steps + 1))
+        run = jax.jit(lambda s: jc.rollout(model, s, solver, dt, steps)[1].x)
+        run(state).block_until_ready()             # compile
+        reps = []
+        for _ in range(3):
+            t0 = time.perf_counter(); xs = run(state).block_until_ready(); reps.append(time.perf_counter() - t0)
+        err = float(np.max(np.linalg.norm(np.asarray(xs)[:, 1:] - ref, axis=-1)))
+        pts.append((np.median(reps) / T, err, dt))
+    results[name] = pts
+    print(name, [(f"dt=1/{round(1 / d)}", f"{e:.2e} m", f"{w * 1e3:.3f} ms/s") for w, e, d in pts])'''),
+    ("code", '''fig, ax = plt.subplots(figsize=(7, 5))
+for name, pts in results.items():
+    w, e, _ = map(np.array, zip(*pts))
+    ax.loglog(w, np.maximum(e, 1e-16), "o-", label=name)
+ax.set_title(f"Double pendulum, {T} s from {ANGLES} rad: error vs cost")
+ax.set_xlabel("wall time per simulated second (s/s)")
+ax.set_ylabel("max bob position error vs SciPy (m)")
+ax.legend(fontsize=8)
+plt.tight_layout()'''),
+]
+
+NB03 = [
+    ("md", "# 03 - System identification\n\nFit rest lengths and the Baumgarte factor of a chain with "
+           "`jc.fit`, then look at how gradients grow with the horizon (see docs/notebooks.md)."),
+    ("code", SETUP + '''
+from jaxcon._fit import _tree_replace
+from jaxcon._gradgrowth import gradient_norms'''),
+    ("code", '''dt = 1 / 240
+n_links = 5 if SMALL else 12
+steps = 60 if SMALL else 240
+model, state = jc.scenes.chain(n_links=n_links, length=2.0, mass=1.0, angle=0.3, dtype=F64)
+rng = np.random.default_rng(0)
+true_rest = np.asarray(model.rest_length) * (1 + rng.uniform(-0.1, 0.1, model.n_constraints))
+truth = _tree_replace(model, {"rest_length": true_rest})
+true_solver = jc.PGS(iterations=20, beta=0.2)
+# start 3 mm off the constraints so the first steps are a Baumgarte correction (beta is visible)
+x0 = np.asarray(state.x) + np.r_[[[0, 0]], 3e-3 * rng.standard_normal((n_links, 2))]
+state0 = jc.State(x0, state.v, state.lam)
+_, traj = jc.rollout(truth, state0, true_solver, dt, steps)
+observed = np.asarray(traj.x) + 1e-4 * rng.standard_normal(traj.x.shape)
+
+fits = {}
+for name, opt in (("Levenberg-Marquardt", "lm"), ("adam", None)):
+    t0 = time.perf_counter()
+    fits[name] = jc.fit(model, state0, jc.PGS(iterations=20, beta=0.4), dt, observed, params=("rest_length", "beta"),
+                        optimizer=opt, learning_rate=3e-3, steps=15 if opt == "lm" else (60 if SMALL else 300),
+                        progress=False)
+    r = fits[name]
+    print(f"{name}: {r.iterations} iterations, {time.perf_counter() - t0:.1f} s, beta {float(r.params['beta']):.4f} "
+          f"(true 0.2), max rest length error {np.max(np.abs(r.params['rest_length'] / true_rest - 1)):.2%}")'''),
+    ("code", '''fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+for name, r in fits.items():
+    axes[0].semilogy(np.arange(1, len(r.history) + 1), r.history, label=name)
+axes[0].set_title("Fit loss"); axes[0].set_xlabel("iteration"); axes[0].set_ylabel("mean squared error (m^2)")
+axes[0].legend()
+k = np.arange(model.n_constraints)
+axes[1].plot(k, true_rest, "ko", label="truth")
+axes[1].plot(k, np.asarray(model.rest_length), "x", color="grey", label="initial guess")
+for name, r in fits.items():
+    axes[1].plot(k, np.asarray(r.params["rest_length"]), ".", label=name)
+axes[1].set_title("Rest lengths: truth vs fit"); axes[1].set_xlabel("link"); axes[1].set_ylabel("rest length (m)")
+axes[1].legend(fontsize=8)
+plt.tight_layout()'''),
+    ("md", "## Gradient growth with the horizon\n\n`gradient_norms` gives |d mean(x_T^2) / d rest_length| "
+           "for several horizons T. A swinging cloth is a chaotic many-body system: the gradient grows "
+           "geometrically, faster with a warm-started under-converged PGS (which also gains energy) than with "
+           "a damped cold-started one. Windowed losses (`jc.fit(..., window=W)`) keep every gradient at "
+           "horizon <= W."),
+    ("code", '''n = 4 if SMALL else 10
+horizons = [25, 50, 100, 200] if SMALL else [50, 200, 400, 800]
+cm, cs = jc.scenes.cloth(n, n, dtype=F64)
+fig, ax = plt.subplots(figsize=(7, 4))
+for label, solver in (("PGS 5 it, warm start", jc.PGS(iterations=5)),
+                      ("PGS 5 it, warm_start_factor 0.85", jc.PGS(iterations=5, warm_start_factor=0.85)),
+                      ("PGS 5 it, no warm start (factor 0)", jc.PGS(iterations=5, warm_start_factor=0.0))):
+    norms = gradient_norms(cm, cs, solver, 1 / 240, horizons)
+    ax.semilogy(np.array(horizons) / 240, norms, "o-", label=label)
+    print(label, norms)
+ax.set_title(f"Gradient growth, {n}x{n} cloth, dt = 1/240 s")
+ax.set_xlabel("horizon (s)"); ax.set_ylabel("|d mean(x_T^2) / d rest_length| (m)")
+ax.legend(fontsize=8)
+plt.tight_layout()'''),
+]
+
+
+def notebook(cells):
+    out = []
+    for kind, src in cells:
+        lines = src.splitlines(keepends=True)
+        if kind == "md":
+            out.append({"cell_type": "markdown", "metadata": {}, "source": lines})
+        else:
+            out.append({"cell_type": "code", "execution_count": None, "metadata": {}, "outputs": [],
+                        "source": lines})
+    return {"cells": out, "metadata": {"kernelspec": {"display_name": "Python 3", "language": "python",
+                                                       "name": "python3"},
+                                        "language_info": {"name": "python"}},
+            "nbformat": 4, "nbformat_minor": 5}
+
+
+def main():
+    for name, cells in (("01_constraints", NB01), ("02_speed_vs_error", NB02),
+                        ("03_system_identification", NB03)):
+        nb = notebook(cells)
+        for i, c in enumerate(nb["cells"]):
+            c["id"] = f"{name[:2]}-{i:02d}"
+        (HERE / f"{name}.ipynb").write_text(json.dumps(nb, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,18 @@
+"""jaxcon._throughput.batched_throughput: rows are consistent and the batch really holds different systems."""
+import numpy as np
+
+from jaxcon._throughput import _batch, batched_throughput
+
+
+def test_rows():
+    rows = batched_throughput((1, 8), steps=20, repeats=2)
+    assert [r["batch"] for r in rows] == [1, 8]
+    for r in rows:
+        assert r["particles"] == 2 and r["run_s"] > 0 and r["compile_s"] > 0
+        assert np.isclose(r["particle_steps_per_s"], r["batch"] * 2 * 20 / r["run_s"])
+
+
+def test_batch_has_distinct_initial_angles():
+    _, state = _batch("double_pendulum", 100, np.float64)
+    assert state.x.shape == (100, 3, 2)
+    assert len(np.unique(np.round(np.asarray(state.x[:64, 2, 0]), 12))) == 64
