@@ -9,7 +9,7 @@ from jax import lax
 
 from . import _layout as L
 from ._pytree import concrete, pytree_dataclass, static_field
-from ._solver import Solver, _check_int, _check_scalar, apply_impulses, clamp_ropes, frames
+from ._solver import Solver, _check_int, _check_scalar, clamp_ropes, frames, velocity_bias, warm_start
 from ._substeps import substepped
 
 
@@ -69,16 +69,9 @@ class Jacobi(Solver):
         def substep(x, v, lam_ws, h):
             v = sys.apply_gravity(v, h)
             fr = frames(sys, x)
-            bias = []
-            for blk, f in zip(topo.blocks, fr):
-                b = beta / h * f.C
-                if blk.has_rope:
-                    slack = jnp.where(f.C > 0, b, f.C / h)
-                    b = slack if blk.all_rope else jnp.where(blk.rope.array, slack, b)
-                bias.append(b)
+            bias = velocity_bias(topo, fr, beta, h)
             if self.warm_start:
-                lam = tuple(clamp_ropes(blk, l) * (f.k > 0) for blk, f, l in zip(topo.blocks, fr, lam_ws))
-                v = apply_impulses(sys, v, fr, lam)
+                v, lam = warm_start(sys, v, fr, lam_ws)
             else:
                 lam = tuple(jnp.zeros_like(f.C) for f in fr)
 

@@ -85,6 +85,28 @@ def apply_impulses(sys: System, v, fr: tuple, lam: tuple):
     return v
 
 
+def velocity_bias(topo: Topology, fr: tuple, beta, h) -> tuple:
+    """Per-block velocity bias: (beta / h) C for rods and taut ropes, the speculative C / h for slack ropes (the
+    rope may close the gap within this (sub)step but no further)."""
+    out = []
+    for blk, f in zip(topo.blocks, fr):
+        b = beta / h * f.C
+        if blk.has_rope:
+            slack = jnp.where(f.C > 0, b, f.C / h)
+            b = slack if blk.all_rope else jnp.where(blk.rope.array, slack, b)
+        out.append(b)
+    return tuple(out)
+
+
+def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, factor=1.0, gradient: bool = True):
+    """Apply `factor` times the previous impulses (ropes clamped, undefined constraints dropped) to `v`.
+    Returns (v, lam): the velocities after the warm start and the accumulated impulses to iterate from."""
+    if not gradient:
+        lam_ws = lax.stop_gradient(lam_ws)
+    lam = tuple(clamp_ropes(blk, l * factor) * (f.k > 0) for blk, f, l in zip(sys.topology.blocks, fr, lam_ws))
+    return apply_impulses(sys, v, fr, lam), lam
+
+
 def _check_int(owner, name, value, minimum):
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
         raise TypeError(f"{owner}: `{name}` must be a Python int (it is static), got {value!r}")
@@ -171,19 +193,10 @@ class PGS(Solver):
         beta = jnp.asarray(self.beta, dtype)
         v = sys.apply_gravity(v, h)
         fr = frames(sys, x)
-        bias = []
-        for blk, f in zip(topo.blocks, fr):
-            b = beta / h * f.C
-            if blk.has_rope:
-                slack = jnp.where(f.C > 0, b, f.C / h)
-                b = slack if blk.all_rope else jnp.where(blk.rope.array, slack, b)
-            bias.append(b)
+        bias = velocity_bias(topo, fr, beta, h)
         if self.warm_start:
-            if not self.warm_start_gradient:
-                lam_ws = lax.stop_gradient(lam_ws)
-            factor = jnp.asarray(self.warm_start_factor, dtype)
-            lam = tuple(clamp_ropes(blk, l * factor) * (f.k > 0) for blk, f, l in zip(topo.blocks, fr, lam_ws))
-            v = apply_impulses(sys, v, fr, lam)
+            v, lam = warm_start(sys, v, fr, lam_ws, jnp.asarray(self.warm_start_factor, dtype),
+                                self.warm_start_gradient)
         else:
             lam = tuple(jnp.zeros_like(f.C) for f in fr)
 

@@ -4,33 +4,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.integrate import solve_ivp
 
 import jaxcon as jc
+from reference import double_pendulum_positions
 
 G = 9.81
 
 
 # ---- reference ---------------------------------------------------------------------------------------------
 def double_pendulum_reference(angles, t_end, lengths=(1.0, 1.0), masses=(1.0, 1.0), g=G):
-    """Bob positions [2, 2] at t_end from the reduced (angle) equations, DOP853 at rtol = atol = 1e-12."""
-    l1, l2 = lengths
-    m1, m2 = masses
-
-    def f(_, s):
-        a1, a2, w1, w2 = s
-        d = a1 - a2
-        den = 2 * m1 + m2 - m2 * np.cos(2 * d)
-        dw1 = (-g * (2 * m1 + m2) * np.sin(a1) - m2 * g * np.sin(a1 - 2 * a2)
-               - 2 * np.sin(d) * m2 * (w2 ** 2 * l2 + w1 ** 2 * l1 * np.cos(d))) / (l1 * den)
-        dw2 = (2 * np.sin(d) * (w1 ** 2 * l1 * (m1 + m2) + g * (m1 + m2) * np.cos(a1)
-                                + w2 ** 2 * l2 * m2 * np.cos(d))) / (l2 * den)
-        return [w1, w2, dw1, dw2]
-
-    r = solve_ivp(f, (0.0, t_end), [angles[0], angles[1], 0.0, 0.0], method="DOP853", rtol=1e-12, atol=1e-12)
-    a1, a2 = r.y[0, -1], r.y[1, -1]
-    p1 = l1 * np.array([np.sin(a1), -np.cos(a1)])
-    return np.stack([p1, p1 + l2 * np.array([np.sin(a2), -np.cos(a2)])])
+    """Bob positions [2, 2] at t_end (the shared SciPy DOP853 reference, rtol = atol = 1e-12)."""
+    return double_pendulum_positions(angles, lengths, masses, [t_end], g)[0]
 
 
 # Position error at t = 1 s on the mild double pendulum must stay below SLOPE * dt (all three are first order
