@@ -339,6 +339,9 @@ def _xpbd_paper(small, log):
 
 # ---------------------------------------------------------------- summaries, files
 
+DIVERGED = 100.0  # m: an error above this is a blow-up, left out of the plots
+
+
 def _fixed_cost(rows, budget):
     out = {}
     for s in SOLVERS:
@@ -377,14 +380,17 @@ def _plots(result, out_dir):
     for scene in result["scenes"]:
         rows = [r for r in result["points"] if r["scene"] == scene]
         fig, ax = plt.subplots(figsize=(6, 4.2), dpi=80)
+        diverged = 0
         for s in SOLVERS:
-            pts = sorted((r["cost_s_per_sim_s"], r["error"]) for r in rows
-                         if r["solver"] == s and math.isfinite(r["error"]) and r["error"] > 0)
+            ok = [r for r in rows if r["solver"] == s and math.isfinite(r["error"]) and 0 < r["error"] <= DIVERGED]
+            diverged += sum(1 for r in rows if r["solver"] == s) - len(ok)
+            pts = sorted((r["cost_s_per_sim_s"], r["error"]) for r in ok)
             if pts:
                 ax.loglog([p[0] * 1e3 for p in pts], [p[1] for p in pts], "o-", label=s, ms=4)
         ax.set_xlabel("wall time per simulated second (ms)")
         ax.set_ylabel(result["scenes"][scene]["error"].split(";")[0])
-        ax.set_title(scene, fontsize=10)
+        ax.set_title(scene + (f" ({diverged} diverged points, error > {DIVERGED:g} m, not shown)" if diverged else ""),
+                     fontsize=9)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
         fig.tight_layout()
