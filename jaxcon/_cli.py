@@ -176,7 +176,14 @@ def main(argv=None) -> int:
     b.add_argument("--repeats", type=int, default=7)
     b.add_argument("--out", default="bench.json", help="JSON output path ('' for none)")
     b.add_argument("--f32-only", action="store_true", help="skip float64")
+    b.add_argument("--speed-vs-error", action="store_true",
+                   help="sweep every solver over iterations, substeps and dt; error vs cost (JSON, CSV, plots)")
+    b.add_argument("--out-dir", default="speed_vs_error", help="output folder of --speed-vs-error")
     args = p.parse_args(argv)
+    if args.cmd == "bench" and args.speed_vs_error:
+        from ._speed_vs_error import run
+        run(small=args.small, out_dir=args.out_dir)
+        return 0
     if args.cmd == "bench" and not args.f32_only:
         jax.config.update("jax_enable_x64", True)
     return {"demo": demo, "bench": bench}[args.cmd](args)
