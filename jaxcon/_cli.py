@@ -104,7 +104,30 @@ def demo(args) -> int:
               f"{t_c:9.2f} {steps / t_run:10.3g} {viol:9.2e} {drift:+9.2e}")
     print("max viol: largest |d - L| / L over constraints and steps; "
           "E drift: (E_end - E_0) / max kinetic energy.")
+    identification(n=8 if args.small else 20, steps=120 if args.small else 240)
     return 0
+
+
+def identification(n: int = 20, steps: int = 240) -> None:
+    """Hide the rest lengths and beta of a chain, observe 1 mm-noisy positions, recover them with jc.fit."""
+    from ._experiments import chain_identification
+    from ._fit import fit
+
+    dt = 1 / 240
+    guess, state, true_L, obs = chain_identification(n=n, beta=0.2, dt=dt, steps=steps, dtype=np.float32)
+    print(f"\nsystem identification: a {n}-link chain with hidden rest lengths (each 2/{n} m +- 10%) and "
+          f"beta = 0.2, {steps} steps observed with 1 mm noise; fitting from the nominal lengths and beta = 0.3")
+    t0 = time.perf_counter()
+    res = fit(guess, state, PGS(iterations=10, beta=0.3), dt, obs, ("rest_length", "beta"), optimizer="lm",
+              steps=40, patience=5)
+    elapsed = time.perf_counter() - t0
+    fitted = np.asarray(res.model.rest_length)
+    print(f"{'link':>4s} {'true L (m)':>11s} {'fitted (m)':>11s} {'error':>8s}")
+    for k in range(n):
+        print(f"{k:4d} {true_L[k]:11.5f} {fitted[k]:11.5f} {fitted[k] / true_L[k] - 1:+8.2%}")
+    print(f"beta: true 0.2, fitted {float(res.solver.beta):.4f}; worst length error "
+          f"{np.max(np.abs(fitted / true_L - 1)):.3%}; {res.iterations} iterations, {elapsed:.1f} s "
+          f"(compilation included)")
 
 
 def _bench_cases(small: bool):
@@ -159,11 +182,33 @@ def bench(args) -> int:
     print("median of repeated compiled rollouts; compile time measured apart (lower + compile). "
           "pos err: bob positions at t = 1 s against the stated reference.")
     out = {"machine": info, "solver": f"PGS(iterations={iterations}, beta=0.2)", "results": results}
+    if not args.no_batched:
+        out["batched"] = batched(args.small, args.repeats)
     if args.out:
         with open(args.out, "w") as f:
             json.dump(out, f, indent=2)
         print(f"wrote {args.out}")
     return 0
+
+
+def batched(small: bool, repeats: int) -> list:
+    """jax.vmap of whole rollouts over batches of initial states: particle-steps per second."""
+    from ._throughput import batched_throughput
+
+    steps = 24 if small else 240
+    cases = [("double_pendulum", (1, 64) if small else (1, 64, 1024, 16384)),
+             ("cloth", (2,) if small else (64,))]
+    print(f"\nbatched rollouts: jax.vmap(rollout) over initial states, PGS(10), {steps} steps, float32, final state "
+          f"only; on {jax.devices()[0].platform}")
+    print(f"{'scene':18s} {'batch':>6s} {'compile s':>9s} {'run s':>9s} {'particle-steps/s':>17s}")
+    rows = []
+    for scene, sizes in cases:
+        for r in batched_throughput(sizes, steps=steps, scene=scene, repeats=max(1, min(repeats, 3))):
+            name = "cloth_16x16" if scene == "cloth" else scene
+            print(f"{name:18s} {r['batch']:6d} {r['compile_s']:9.2f} {r['run_s']:9.4f} "
+                  f"{r['particle_steps_per_s']:17.3g}")
+            rows.append(r)
+    return rows
 
 
 def main(argv=None) -> int:
@@ -176,6 +221,7 @@ def main(argv=None) -> int:
     b.add_argument("--repeats", type=int, default=7)
     b.add_argument("--out", default="bench.json", help="JSON output path ('' for none)")
     b.add_argument("--f32-only", action="store_true", help="skip float64")
+    b.add_argument("--no-batched", action="store_true", help="skip the batched (vmap) throughput section")
     b.add_argument("--speed-vs-error", action="store_true",
                    help="sweep every solver over iterations, substeps and dt; error vs cost (JSON, CSV, plots)")
     b.add_argument("--out-dir", default="speed_vs_error", help="output folder of --speed-vs-error")

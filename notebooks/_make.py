@@ -40,7 +40,7 @@ def solvers_for(model):
     sub = int(np.ceil(dt / (0.5 * pen.stability_limit(model))))
     out = {f"Penalty k=1e4 ({sub} substeps)": jc.Penalty(stiffness=1e4, damping=5.0, substeps=sub),
            "PGS 1 it": jc.PGS(iterations=1), "PGS 5 it": jc.PGS(iterations=5), "PGS 20 it": jc.PGS(iterations=20)}
-    if hasattr(jc, "Direct"):
+    if hasattr(jc, "Direct") and not model.topology.has_ropes:   # Direct takes rods only
         out["Direct"] = jc.Direct()
     return out'''),
     ("md", "## Pendulum (rod) and rope: length error over time"),

@@ -51,7 +51,8 @@ def test_api_md_calls_work_as_written():
 def test_demo_runs(capsys):
     assert main(["demo", "--small"]) == 0
     out = capsys.readouterr().out
-    for name in ("pendulum", "double_pendulum", "chain_20", "cloth_8x8", "compile s", "max viol", "E drift"):
+    for name in ("pendulum", "double_pendulum", "chain_20", "cloth_8x8", "compile s", "max viol", "E drift",
+                 "system identification", "beta: true 0.2"):
         assert name in out
 
 
@@ -66,3 +67,5 @@ def test_bench_writes_json(tmp_path, capsys):
     dp = [r for r in rows if r["case"] == "double_pendulum"][0]
     assert dp["position_error_at_1s"] < 0.05
     assert "cpu" in data["machine"]
+    assert {r["batch"] for r in data["batched"]} >= {1, 64}
+    assert all(r["particle_steps_per_s"] > 0 for r in data["batched"])

@@ -8,25 +8,13 @@ import optax
 import pytest
 
 import jaxcon as jc
+from jaxcon._experiments import chain_identification
 
 DT = 1 / 240
 
 
 def _chain_experiment(seed=0, n=20, beta=0.2):
-    """A 20-link chain whose rest lengths are each perturbed by up to 10%. The initial positions are the true
-    geometry jittered by 3 mm per particle, so the first steps are a Baumgarte correction of a constraint error
-    at rate beta (beta is not identifiable from motion that satisfies the constraints)."""
-    rng = np.random.default_rng(seed)
-    nominal = np.full(n, 2.0 / n)
-    true_L = nominal * (1 + rng.uniform(-0.1, 0.1, n))
-    a = 0.3
-    x = np.concatenate([[np.zeros(2)], np.cumsum(true_L[:, None] * np.array([np.sin(a), -np.cos(a)]), 0)])
-    x[1:] += 0.003 * rng.standard_normal(x[1:].shape)
-    model, state = jc.build(x, np.r_[1.0, np.full(n, 1.0 / n)], rods=[(k, k + 1) for k in range(n)],
-                            fixed=[0], rest_lengths=true_L)
-    _, tr = jc.rollout(model, state, jc.PGS(iterations=10, beta=beta), DT, 240)
-    obs = tr.x + 1e-3 * rng.standard_normal(tr.x.shape)   # 1 s, 1 mm noise
-    return model.replace(rest_length=nominal), state, true_L, obs
+    return chain_identification(n=n, seed=seed, beta=beta, dt=DT)
 
 
 def test_fit_chain_rest_lengths_and_beta():

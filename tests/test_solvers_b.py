@@ -65,11 +65,11 @@ def test_rattle_is_second_order_pgs_first_order():
 
 
 # ---- tension of a hanging mass ------------------------------------------------------------------------------
-@pytest.mark.parametrize("solver", [jc.Direct(regularisation=0.0), jc.SoftStep(), jc.RATTLE()], ids=repr)
-@pytest.mark.parametrize("kind", ["rod", "rope"])
+@pytest.mark.parametrize("solver, kind", [
+    (jc.Direct(regularisation=0.0), "rod"),      # Direct takes no ropes (its error is tested below)
+    (jc.SoftStep(), "rod"), (jc.SoftStep(), "rope"), (jc.RATTLE(), "rod"), (jc.RATTLE(), "rope"),
+], ids=repr)
 def test_hanging_mass_tension_is_mg(solver, kind):
-    if isinstance(solver, jc.Direct) and kind == "rope":
-        pytest.skip("Direct does not take ropes (tested below)")
     m, dt = 2.5, 1 / 100
     model, state = jc.scenes.pendulum(1.0, m, 0.0, kind=kind, dtype=np.float64)
     final, traj = jc.rollout(model, state, solver, dt, 20)
