@@ -1,7 +1,7 @@
 """jaxcon: differentiable constrained particle dynamics in JAX."""
 from . import scenes as scenes
 from ._model import Model as Model, State as State, Trajectory as Trajectory, build as build
-from ._sim import rollout as rollout, step as step
+from ._sim import batched_rollout as batched_rollout, rollout as rollout, step as step
 from ._solver import PGS as PGS, Solver as Solver
 from ._jacobi import Jacobi as Jacobi
 from ._xpbd import XPBD as XPBD

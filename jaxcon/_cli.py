@@ -150,8 +150,8 @@ def bench(args) -> int:
     results = []
     print(f"jaxcon bench: PGS(iterations={iterations}), dt = 1/240 s; {info['cpu']}, {info['cores']} cores, "
           f"jax {info['jax']} on {info['platform']}")
-    head = (f"{'case':18s} {'dtype':7s} {'compile s':>9s} {'us/step':>10s} {'ns/c-iter':>9s} {'max viol':>9s} "
-            f"{'E drift':>9s} {'pos err':>9s}")
+    head = (f"{'case':18s} {'dtype':7s} {'compile s':>9s} {'us/step':>10s} {'no record':>10s} {'ns/c-iter':>9s} "
+            f"{'max viol':>9s} {'E drift':>9s} {'pos err':>9s}")
     print(head)
     print("-" * len(head))
     dtypes = [np.float32] + ([np.float64] if jax.config.jax_enable_x64 else [])
@@ -162,10 +162,12 @@ def bench(args) -> int:
             t_c, t_run, compiled = compile_and_time(fn, state, repeats=args.repeats)
             _, tr = compiled(state)
             per_step = t_run / steps
+            bare = lambda s, model=model, steps=steps: rollout(model, s, solver, dt, steps, save_every=steps)[0]  # noqa: E731
+            _, t_bare, _ = compile_and_time(bare, state, repeats=args.repeats)
             row = {"case": name, "dtype": np.dtype(dtype).name, "particles": model.n_particles,
                    "constraints": model.n_constraints, "colours": model.topology.n_colours,
                    "iterations": iterations, "dt": dt, "steps": steps, "compile_s": t_c,
-                   "median_s_per_step": per_step,
+                   "median_s_per_step": per_step, "median_s_per_step_final_state_only": t_bare / steps,
                    "ns_per_constraint_iteration": per_step / (model.n_constraints * iterations) * 1e9,
                    "max_violation": float(jnp.max(violation(model, tr.x))),
                    "energy_drift": float(energy_drift(model, state, tr))}
@@ -176,11 +178,12 @@ def bench(args) -> int:
                 row["error_reference"] = "reduced-coordinate RK4, h = 1e-4 s, float64"
             results.append(row)
             err = row.get("position_error_at_1s")
-            print(f"{name:18s} {row['dtype']:7s} {t_c:9.2f} {per_step * 1e6:10.3f} "
+            print(f"{name:18s} {row['dtype']:7s} {t_c:9.2f} {per_step * 1e6:10.3f} {t_bare / steps * 1e6:10.3f} "
                   f"{row['ns_per_constraint_iteration']:9.2f} {row['max_violation']:9.2e} "
                   f"{row['energy_drift']:+9.2e} {'' if err is None else f'{err:9.2e}'}")
-    print("median of repeated compiled rollouts; compile time measured apart (lower + compile). "
-          "pos err: bob positions at t = 1 s against the stated reference.")
+    print("us/step: median of repeated compiled rollouts recording the trajectory every step; no record: the same "
+          "rollout keeping only the final state (save_every=steps); compile time measured apart (lower + "
+          "compile); ns/c-iter from us/step; pos err: bob positions at t = 1 s against the stated reference.")
     out = {"machine": info, "solver": f"PGS(iterations={iterations}, beta=0.2)", "results": results}
     if not args.no_batched:
         out["batched"] = batched(args.small, args.repeats)
@@ -198,16 +201,18 @@ def batched(small: bool, repeats: int) -> list:
     steps = 24 if small else 240
     cases = [("double_pendulum", (1, 64) if small else (1, 64, 1024, 16384)),
              ("cloth", (2,) if small else (64,))]
-    print(f"\nbatched rollouts: jax.vmap(rollout) over initial states, PGS(10), {steps} steps, float32, final state "
-          f"only; on {jax.devices()[0].platform}")
-    print(f"{'scene':18s} {'batch':>6s} {'compile s':>9s} {'run s':>9s} {'particle-steps/s':>17s}")
+    print(f"\nbatched rollouts over initial states, PGS(10), {steps} steps, float32, final state only; "
+          f"on {jax.devices()[0].platform}. vmap: one jax.vmap; chunks: jc.batched_rollout")
+    print(f"{'scene':18s} {'batch':>6s} {'mode':>15s} {'compile s':>9s} {'run s':>9s} {'particle-steps/s':>17s}")
     rows = []
     for scene, sizes in cases:
-        for r in batched_throughput(sizes, steps=steps, scene=scene, repeats=max(1, min(repeats, 3))):
-            name = "cloth_16x16" if scene == "cloth" else scene
-            print(f"{name:18s} {r['batch']:6d} {r['compile_s']:9.2f} {r['run_s']:9.4f} "
-                  f"{r['particle_steps_per_s']:17.3g}")
-            rows.append(r)
+        for chunk in (None, 1024):
+            for r in batched_throughput(sizes, steps=steps, scene=scene, repeats=max(1, min(repeats, 3)),
+                                        chunk=chunk):
+                name = "cloth_16x16" if scene == "cloth" else scene
+                print(f"{name:18s} {r['batch']:6d} {r['mode']:>15s} {r['compile_s']:9.2f} {r['run_s']:9.4f} "
+                      f"{r['particle_steps_per_s']:17.3g}")
+                rows.append(r)
     return rows
 
 

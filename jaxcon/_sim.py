@@ -10,6 +10,7 @@ from jax import lax
 
 from . import _layout as L
 from ._model import Model, State, Trajectory, check_state
+from ._model import _check_values as _check_values_fn
 from ._pytree import concrete
 from ._solver import Solver, System
 
@@ -134,3 +135,34 @@ def rollout(model: Model, state: State, solver: Solver, dt, steps: int, *, save_
         if checkpoint >= steps:
             checkpoint = steps
     return _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint)
+
+
+@functools.partial(jax.jit, static_argnames=("steps", "save_every", "chunk"))
+def _batched_jit(model, states, solver, dt, steps, save_every, chunk):
+    return lax.map(lambda one: _rollout_jit(model, one, solver, dt, steps, save_every), states, batch_size=chunk)
+
+
+def batched_rollout(model: Model, states: State, solver: Solver, dt, steps: int, *, chunk: int = 1024,
+                    save_every: int = 1):
+    """`rollout` of a batch of initial states (x, v [B, n, dim], lam [B, m]) with one model and solver.
+
+    Runs `jax.vmap` over chunks of `chunk` states and `lax.map` across chunks. On CPU this is much faster than
+    one `jax.vmap` over a large batch: measured on a 2-core Xeon, vmap of PGS double pendulums runs at
+    ~1e7 particle-steps/s up to about 2000 systems and drops ~13x above that, while chunks of 1024 keep
+    ~1e7 at 16384 systems. Returns (finals, trajs) with a leading batch axis.
+    """
+    if not isinstance(states, State):
+        raise TypeError(f"batched_rollout: `states` must be a jaxcon State, got {type(states).__name__}")
+    if np.ndim(states.x) != 3:
+        raise ValueError(f"batched_rollout: `states.x` must have shape [batch, n, dim], got {np.shape(states.x)}")
+    _check_int("batched_rollout", "chunk", chunk, 1)
+    _check_int("batched_rollout", "save_every", save_every, 1)
+    first = jax.tree.map(lambda a: a[0], states)
+    _check_call("batched_rollout", model, first, solver, dt, steps)
+    for name in ("x", "v", "lam"):
+        if np.shape(getattr(states, name))[0] != np.shape(states.x)[0]:
+            raise ValueError(f"batched_rollout: `states.{name}` has a different batch size than `states.x`")
+        _check_values_fn("batched_rollout", f"states.{name}", getattr(states, name))
+    if steps % save_every:
+        raise ValueError(f"batched_rollout: `steps` ({steps}) must be a multiple of `save_every` ({save_every})")
+    return _batched_jit(model, states, solver, dt, steps, save_every, min(chunk, int(np.shape(states.x)[0])))

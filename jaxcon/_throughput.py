@@ -10,7 +10,7 @@ import numpy as np
 
 from . import scenes
 from ._model import State
-from ._sim import _rollout_jit
+from ._sim import _batched_jit, _rollout_jit
 from ._solver import PGS, Solver
 
 
@@ -36,9 +36,12 @@ def _batch(scene, batch, dtype):
 
 def batched_throughput(batch_sizes: Sequence[int] = (1, 64, 1024, 16384), steps: int = 240,
                        scene: str = "double_pendulum", solver: Optional[Solver] = None, dt: float = 1 / 240,
-                       dtype=np.float32, repeats: int = 5):
+                       dtype=np.float32, repeats: int = 5, chunk: Optional[int] = None):
     """Time `jax.jit(jax.vmap(rollout))` over batches of initial states (different initial angles for the
     double pendulum, different initial vertical velocities for the 16x16 cloth).
+
+    chunk: None times one `jax.vmap` over the whole batch; an int times `jc.batched_rollout` (vmap over chunks
+    of that many states, lax.map across chunks).
 
     Only the final state is returned by the timed function (no per-step trajectory), so memory is
     O(batch). Returns a list of dicts: batch, particles (moving, per system), compile_s (lower + compile),
@@ -49,7 +52,10 @@ def batched_throughput(batch_sizes: Sequence[int] = (1, 64, 1024, 16384), steps:
     rows = []
     for b in batch_sizes:
         model, state = _batch(scene, int(b), dtype)
-        f = jax.jit(jax.vmap(lambda s: _rollout_jit(model, s, solver, dt, steps, steps)[0]))
+        if chunk is None:
+            f = jax.jit(jax.vmap(lambda s: _rollout_jit(model, s, solver, dt, steps, steps)[0]))
+        else:
+            f = jax.jit(lambda s: _batched_jit(model, s, solver, dt, steps, steps, min(chunk, int(b)))[0])
         t0 = time.perf_counter()
         compiled = f.lower(state).compile()
         compile_s = time.perf_counter() - t0
@@ -61,7 +67,7 @@ def batched_throughput(batch_sizes: Sequence[int] = (1, 64, 1024, 16384), steps:
             times.append(time.perf_counter() - t0)
         run = float(np.median(times))
         n = int(np.sum(np.asarray(model.inv_mass) > 0))
-        rows.append(dict(scene=scene, batch=int(b), particles=n, steps=steps, compile_s=compile_s, run_s=run,
+        rows.append(dict(scene=scene, batch=int(b), mode="vmap" if chunk is None else f"chunks of {chunk}", particles=n, steps=steps, compile_s=compile_s, run_s=run,
                          particle_steps_per_s=b * n * steps / run))
     return rows
 

@@ -318,3 +318,21 @@ def test_stopping_warm_start_gradients_keeps_the_forward_pass():
     g_full = jax.grad(lambda r: jnp.sum(run(r, True) ** 2))(model.rest_length)
     g_stop = jax.grad(lambda r: jnp.sum(run(r, False) ** 2))(model.rest_length)
     assert np.all(np.isfinite(np.asarray(g_stop))) and not np.allclose(np.asarray(g_full), np.asarray(g_stop))
+
+
+def test_batched_rollout_equals_vmap_and_checks_its_input():
+    model, state = jc.scenes.double_pendulum(dtype=np.float64)
+    x0 = jnp.stack([state.x, state.x.at[1:].multiply(0.99), state.x.at[2, 0].add(0.1)])
+    states = jc.State(x0, jnp.zeros_like(x0), jnp.zeros((3, 2)))
+    solver = jc.PGS(6)
+    finals, trajs = jc.batched_rollout(model, states, solver, 1 / 240, 20, chunk=2, save_every=5)
+    ref_f, ref_t = jax.vmap(lambda s: jc.rollout(model, s, solver, 1 / 240, 20, save_every=5))(states)
+    np.testing.assert_allclose(np.asarray(trajs.x), np.asarray(ref_t.x), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(finals.lam), np.asarray(ref_f.lam), rtol=0, atol=1e-13)
+    assert trajs.x.shape == (3, 4, 3, 2)
+    with pytest.raises(ValueError, match="states.x"):
+        jc.batched_rollout(model, state, solver, 1 / 240, 20)
+    with pytest.raises(ValueError, match="chunk"):
+        jc.batched_rollout(model, states, solver, 1 / 240, 20, chunk=0)
+    with pytest.raises(ValueError, match="states.v"):
+        jc.batched_rollout(model, states.replace(v=states.v.at[1, 1, 0].set(jnp.inf)), solver, 1 / 240, 20)
