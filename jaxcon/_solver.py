@@ -103,7 +103,9 @@ def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, factor=1.0, gradient: b
     Returns (v, lam): the velocities after the warm start and the accumulated impulses to iterate from."""
     if not gradient:
         lam_ws = lax.stop_gradient(lam_ws)
-    lam = tuple(clamp_ropes(blk, l * factor) * (f.k > 0) for blk, f, l in zip(sys.topology.blocks, fr, lam_ws))
+    if not (isinstance(factor, (int, float)) and factor == 1):     # a plain 1 costs nothing
+        lam_ws = tuple(l * factor for l in lam_ws)
+    lam = tuple(clamp_ropes(blk, l) * (f.k > 0) for blk, f, l in zip(sys.topology.blocks, fr, lam_ws))
     return apply_impulses(sys, v, fr, lam), lam
 
 
@@ -195,8 +197,9 @@ class PGS(Solver):
         fr = frames(sys, x)
         bias = velocity_bias(topo, fr, beta, h)
         if self.warm_start:
-            v, lam = warm_start(sys, v, fr, lam_ws, jnp.asarray(self.warm_start_factor, dtype),
-                                self.warm_start_gradient)
+            factor = self.warm_start_factor
+            factor = factor if isinstance(factor, (int, float)) else jnp.asarray(factor, dtype)
+            v, lam = warm_start(sys, v, fr, lam_ws, factor, self.warm_start_gradient)
         else:
             lam = tuple(jnp.zeros_like(f.C) for f in fr)
 
