@@ -165,6 +165,14 @@ class PGS(Solver):
         previous step's correction impulse back in faster than the sweeps remove it, and the chain gains
         energy until it explodes (a 50-link chain hanging at rest, 10 iterations, beta 0.2: 1e2 stretch
         after 1 s). 0.85 (Bullet's default) keeps it bounded at a small cost in convergence.
+      implicit: differentiate the multipliers implicitly (static; rods only). The forward pass is the same
+        sweeps; reverse mode solves the adjoint system (J M^-1 J^T)^T mu = g with the same `iterations`
+        sweeps instead of storing and unrolling every sweep. Exact when the sweeps have converged and lambda is
+        unique (tested against finite differences to 1e-7); 7 to 34x less reverse-mode memory measured. Not for
+        redundant structures (a cloth with shear rods: J M^-1 J^T is singular, lambda is not unique and the
+        adjoint sweeps do not converge: the gradient is then meaningless), nor for under-converged sweeps on
+        long horizons (20-link chain, 50 sweeps, 240 steps: 60% off the unrolled gradient). Ropes (an
+        inequality) are refused with a clear error.
       warm_start_gradient: if False, no gradient flows through the warm-start impulses (static). The forward
         pass is unchanged and the gradient becomes a truncated one. Measured on a swinging 16x16 cloth it does
         not stop long-horizon gradient growth (that growth is the physics: the motion is chaotic, and a
@@ -178,6 +186,7 @@ class PGS(Solver):
     substeps: int = static_field(default=1)
     warm_start_factor: Any = 1.0
     warm_start_gradient: bool = static_field(default=True)
+    implicit: bool = static_field(default=False)
 
     def __post_init__(self):
         _check_int("PGS", "iterations", self.iterations, 1)
@@ -188,6 +197,8 @@ class PGS(Solver):
         _check_scalar("PGS", "warm_start_factor", self.warm_start_factor, 0.0, 1.0)
         if not isinstance(self.warm_start_gradient, (bool, np.bool_)):
             raise TypeError(f"PGS: `warm_start_gradient` must be a bool, got {self.warm_start_gradient!r}")
+        if not isinstance(self.implicit, (bool, np.bool_)):
+            raise TypeError(f"PGS: `implicit` must be a bool, got {self.implicit!r}")
 
     def _substep(self, sys, x, v, lam_ws, h):
         topo = sys.topology
@@ -215,7 +226,50 @@ class PGS(Solver):
                 v = v + L.scatter_pair(topo, blk, f.wi * p, -f.wj * p)
             return v, tuple(lam)
 
+        if self.implicit:
+            return self._implicit(sys, x, v, lam, fr, bias, h)
         v, lam = lax.fori_loop(0, self.iterations, sweep, (v, lam))
+        return x + h * v, v, lam
+
+    def _implicit(self, sys, x, v, lam0, fr, bias, h):
+        """Converged multipliers with implicit derivatives: lam solves G lam = rel(v) + bias, where
+        G lam = -J (M^-1 J^T lam) is J M^-1 J^T in the tension convention (symmetric), and v is the velocity
+        before any impulse. `lam0` (the warm start, already applied to v) is the solver's initial guess only."""
+        topo = sys.topology
+        if topo.has_ropes:
+            raise ValueError("PGS(implicit=True): implicit differentiation needs equality constraints; the model "
+                             "has ropes (inequalities). Use implicit=False for ropes.")
+        v_free = apply_impulses(sys, v, fr, tuple(-l for l in lam0))     # undo the warm start
+        zero_v = jnp.zeros_like(v)
+
+        def relative(u):
+            out = []
+            for blk, f in zip(topo.blocks, fr):
+                ui, uj = L.gather_pair(topo, blk, u)
+                out.append(jnp.sum((uj - ui) * f.n, axis=0))
+            return tuple(out)
+
+        def matvec(l):
+            return tuple(-r for r in relative(apply_impulses(sys, zero_v, fr, l)))
+
+        def solve(_, rhs, guess=lax.stop_gradient(lam0)):
+            def sweep(_, carry):
+                u, l = carry
+                l = list(l)
+                for c, (blk, f) in enumerate(zip(topo.blocks, fr)):
+                    ui, uj = L.gather_pair(topo, blk, u)
+                    d = (jnp.sum((uj - ui) * f.n, axis=0) + rhs[c]) * f.k
+                    l[c] = l[c] + d
+                    p = f.n * d
+                    u = u + L.scatter_pair(topo, blk, f.wi * p, -f.wj * p)
+                return u, tuple(l)
+
+            u0 = apply_impulses(sys, zero_v, fr, guess)
+            return lax.fori_loop(0, self.iterations, sweep, (u0, guess))[1]
+
+        rhs = tuple(r + b for r, b in zip(relative(v_free), bias))
+        lam = lax.custom_linear_solve(matvec, rhs, solve, symmetric=True)
+        v = apply_impulses(sys, v_free, fr, lam)
         return x + h * v, v, lam
 
     def _step(self, sys, x, v, lam, dt):
