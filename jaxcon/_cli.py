@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import scenes
+from . import _reference, scenes
 from ._diagnostics import energy_drift, violation
 from ._sim import rollout
 from ._solver import PGS
@@ -46,31 +46,6 @@ def compile_and_time(fn, *args, repeats=7):
         jax.block_until_ready(compiled(*args))
         times.append(time.perf_counter() - t0)
     return t_compile, float(np.median(times)), compiled
-
-
-def _double_pendulum_reference(angles, lengths, masses, t_end, g=9.81, h=1e-4):
-    """Double pendulum in reduced (angle) coordinates integrated by classical RK4 in float64 NumPy with a small
-    step: an independent reference that needs no SciPy. Returns bob positions [2, 2] at t_end."""
-    l1, l2 = lengths
-    m1, m2 = masses
-
-    def f(s):
-        a1, a2, w1, w2 = s
-        d = a1 - a2
-        den = 2 * m1 + m2 - m2 * np.cos(2 * d)
-        dw1 = (-g * (2 * m1 + m2) * np.sin(a1) - m2 * g * np.sin(a1 - 2 * a2)
-               - 2 * np.sin(d) * m2 * (w2 ** 2 * l2 + w1 ** 2 * l1 * np.cos(d))) / (l1 * den)
-        dw2 = (2 * np.sin(d) * (w1 ** 2 * l1 * (m1 + m2) + g * (m1 + m2) * np.cos(a1)
-                                + w2 ** 2 * l2 * m2 * np.cos(d))) / (l2 * den)
-        return np.array([w1, w2, dw1, dw2])
-
-    s = np.array([angles[0], angles[1], 0.0, 0.0])
-    n = int(round(t_end / h))
-    for _ in range(n):
-        k1 = f(s); k2 = f(s + h / 2 * k1); k3 = f(s + h / 2 * k2); k4 = f(s + h * k3)
-        s = s + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-    p1 = l1 * np.array([np.sin(s[0]), -np.cos(s[0])])
-    return np.stack([p1, p1 + l2 * np.array([np.sin(s[1]), -np.cos(s[1])])])
 
 
 def _scene_list(small: bool):
@@ -173,9 +148,9 @@ def bench(args) -> int:
                    "energy_drift": float(energy_drift(model, state, tr))}
             if name == "double_pendulum":
                 k = int(round(1.0 / dt))
-                ref = _double_pendulum_reference((0.5, 0.5), (1.0, 1.0), (1.0, 1.0), k * dt)
+                ref = _reference.double_pendulum_positions((0.5, 0.5), (1.0, 1.0), (1.0, 1.0), [k * dt])[0]
                 row["position_error_at_1s"] = float(np.max(np.abs(np.asarray(tr.x[k - 1, 1:]) - ref)))
-                row["error_reference"] = "reduced-coordinate RK4, h = 1e-4 s, float64"
+                row["error_reference"] = _reference.describe()
             results.append(row)
             err = row.get("position_error_at_1s")
             print(f"{name:18s} {row['dtype']:7s} {t_c:9.2f} {per_step * 1e6:10.3f} {t_bare / steps * 1e6:10.3f} "
