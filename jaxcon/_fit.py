@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ._model import Model, State, check_state
+from ._model import Model, State
 from ._sim import _check_call, _rollout_jit
 from ._solver import Solver
 

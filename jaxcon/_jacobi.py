@@ -8,8 +8,8 @@ import numpy as np
 from jax import lax
 
 from . import _layout as L
-from ._pytree import concrete, pytree_dataclass, static_field
-from ._solver import Solver, _check_int, _check_scalar, clamp_ropes, frames, velocity_bias, warm_start
+from ._pytree import pytree_dataclass, static_field
+from ._solver import Solver, _check_bool, _check_int, _check_scalar, clamp_ropes, frames, velocity_bias, warm_start
 from ._substeps import substepped
 
 
@@ -50,14 +50,10 @@ class Jacobi(Solver):
     def __post_init__(self):
         _check_int("Jacobi", "iterations", self.iterations, 1)
         _check_int("Jacobi", "substeps", self.substeps, 1)
-        if not isinstance(self.warm_start, (bool, np.bool_)):
-            raise TypeError(f"Jacobi: `warm_start` must be a bool, got {self.warm_start!r}")
+        _check_bool("Jacobi", "warm_start", self.warm_start)
         _check_scalar("Jacobi", "beta", self.beta, 0.0, 1.0)
         if self.relaxation is not None:
-            _check_scalar("Jacobi", "relaxation", self.relaxation, 0.0, 2.0)
-            r = concrete(self.relaxation)
-            if r is not None and not float(r) > 0:
-                raise ValueError(f"Jacobi: `relaxation` must be > 0, got {float(r)}")
+            _check_scalar("Jacobi", "relaxation", self.relaxation, 0.0, 2.0, positive=True)
 
     def _step(self, sys, x, v, lam, dt):
         topo = sys.topology

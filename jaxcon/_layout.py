@@ -5,7 +5,6 @@ These are the building blocks every solver uses; none of them loops over particl
 from __future__ import annotations
 
 import jax.numpy as jnp
-import numpy as np
 from jax import lax
 
 from ._topology import Block, Topology

@@ -8,7 +8,7 @@ import numpy as np
 from jax import lax
 
 from . import _layout as L
-from ._pytree import concrete, pytree_dataclass, static_field
+from ._pytree import pytree_dataclass, static_field
 from ._solver import Solver, _check_int, _check_scalar
 from ._substeps import substepped
 
@@ -52,11 +52,8 @@ class Penalty(Solver):
 
     def __post_init__(self):
         _check_int("Penalty", "substeps", self.substeps, 1)
-        _check_scalar("Penalty", "stiffness", self.stiffness, 0.0)
+        _check_scalar("Penalty", "stiffness", self.stiffness, 0.0, positive=True)
         _check_scalar("Penalty", "damping", self.damping, 0.0)
-        k = concrete(self.stiffness)
-        if k is not None and not float(k) > 0:
-            raise ValueError(f"Penalty: `stiffness` must be > 0 (N/m), got {float(k)}")
 
     def stability_limit(self, model) -> float:
         """A substep h below which the undamped springs of `model` are stable: 2 / omega_bound (s), with

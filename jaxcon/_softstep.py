@@ -8,7 +8,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from . import _layout as L
-from ._pytree import concrete, pytree_dataclass, static_field
+from ._pytree import pytree_dataclass, static_field
 from ._solver import Solver, _check_int, _check_scalar, apply_impulses, clamp_ropes, frames
 from ._substeps import substepped
 
@@ -61,10 +61,8 @@ class SoftStep(Solver):
     def __post_init__(self):
         _check_int("SoftStep", "substeps", self.substeps, 1)
         _check_int("SoftStep", "relax_iterations", self.relax_iterations, 0)
-        _check_scalar("SoftStep", "hertz", self.hertz, 0.0)
+        _check_scalar("SoftStep", "hertz", self.hertz, 0.0, positive=True)
         _check_scalar("SoftStep", "damping_ratio", self.damping_ratio, 0.0)
-        if _is_zero(self.hertz):
-            raise ValueError("SoftStep: `hertz` must be > 0, got 0.0")
 
     def _step(self, sys, x, v, lam, dt):
         dtype = x.dtype
@@ -108,6 +106,3 @@ class SoftStep(Solver):
         return substepped(substep, self.substeps, x, v, lam, dt)
 
 
-def _is_zero(a):
-    c = concrete(a)
-    return c is not None and float(c) == 0.0

@@ -116,7 +116,13 @@ def _check_int(owner, name, value, minimum):
         raise ValueError(f"{owner}: `{name}` must be >= {minimum}, got {value}")
 
 
-def _check_scalar(owner, name, value, lo=None, hi=None):
+def _check_bool(owner, name, value):
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{owner}: `{name}` must be a bool, got {value!r}")
+
+
+def _check_scalar(owner, name, value, lo=None, hi=None, *, positive=False):
+    """Scalar, finite, within [lo, hi] and (if `positive`) > 0, for values known now; tracers are skipped."""
     if np.ndim(value) != 0:
         raise ValueError(f"{owner}: `{name}` must be a scalar, got shape {np.shape(value)}")
     a = concrete(value)
@@ -129,6 +135,8 @@ def _check_scalar(owner, name, value, lo=None, hi=None):
         raise ValueError(f"{owner}: `{name}` must be >= {lo}, got {a}")
     if hi is not None and a > hi:
         raise ValueError(f"{owner}: `{name}` must be <= {hi}, got {a}")
+    if positive and not a > 0:
+        raise ValueError(f"{owner}: `{name}` must be > 0, got {a}")
 
 
 class Solver:
@@ -191,14 +199,11 @@ class PGS(Solver):
     def __post_init__(self):
         _check_int("PGS", "iterations", self.iterations, 1)
         _check_int("PGS", "substeps", self.substeps, 1)
-        if not isinstance(self.warm_start, (bool, np.bool_)):
-            raise TypeError(f"PGS: `warm_start` must be a bool, got {self.warm_start!r}")
+        _check_bool("PGS", "warm_start", self.warm_start)
+        _check_bool("PGS", "warm_start_gradient", self.warm_start_gradient)
+        _check_bool("PGS", "implicit", self.implicit)
         _check_scalar("PGS", "beta", self.beta, 0.0, 1.0)
         _check_scalar("PGS", "warm_start_factor", self.warm_start_factor, 0.0, 1.0)
-        if not isinstance(self.warm_start_gradient, (bool, np.bool_)):
-            raise TypeError(f"PGS: `warm_start_gradient` must be a bool, got {self.warm_start_gradient!r}")
-        if not isinstance(self.implicit, (bool, np.bool_)):
-            raise TypeError(f"PGS: `implicit` must be a bool, got {self.implicit!r}")
 
     def _substep(self, sys, x, v, lam_ws, h):
         topo = sys.topology

@@ -439,7 +439,7 @@ def run(small=False, out_dir=".", repeats=None, verbose=True):
     scal_rows, expo = _scaling(small, repeats, log)
     print("[energy drift, double pendulum (0.5, 0.5)]", flush=True)
     if small:  # reuse the pendulum points (one per solver) instead of compiling seven more rollouts
-        drift_T = scene_meta_T = 0.25
+        drift_T = 0.25
         drift_rows = [{"solver": r["solver"], "config": r["config"], "dt": r["dt"], "t_end": r["t_end"],
                        "energy_drift": r["energy_drift"], "violation_end": None}
                       for r in points if r["scene"] == "double_pendulum_mild"]

@@ -1,7 +1,6 @@
 """Batched throughput: `jax.vmap` of rollouts over a batch of initial states, timed after compilation."""
 from __future__ import annotations
 
-import time
 from typing import Optional, Sequence
 
 import jax
@@ -10,6 +9,7 @@ import numpy as np
 
 from . import scenes
 from ._model import State
+from ._cli import compile_and_time
 from ._sim import _batched_jit, _rollout_jit
 from ._solver import PGS, Solver
 
@@ -53,21 +53,13 @@ def batched_throughput(batch_sizes: Sequence[int] = (1, 64, 1024, 16384), steps:
     for b in batch_sizes:
         model, state = _batch(scene, int(b), dtype)
         if chunk is None:
-            f = jax.jit(jax.vmap(lambda s: _rollout_jit(model, s, solver, dt, steps, steps)[0]))
+            f = jax.vmap(lambda s: _rollout_jit(model, s, solver, dt, steps, steps)[0])
         else:
-            f = jax.jit(lambda s: _batched_jit(model, s, solver, dt, steps, steps, min(chunk, int(b)))[0])
-        t0 = time.perf_counter()
-        compiled = f.lower(state).compile()
-        compile_s = time.perf_counter() - t0
-        jax.block_until_ready(compiled(state))
-        times = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            jax.block_until_ready(compiled(state))
-            times.append(time.perf_counter() - t0)
-        run = float(np.median(times))
+            f = lambda s: _batched_jit(model, s, solver, dt, steps, steps, min(chunk, int(b)))[0]  # noqa: E731
+        compile_s, run, _ = compile_and_time(f, state, repeats=repeats)
         n = int(np.sum(np.asarray(model.inv_mass) > 0))
-        rows.append(dict(scene=scene, batch=int(b), mode="vmap" if chunk is None else f"chunks of {chunk}", particles=n, steps=steps, compile_s=compile_s, run_s=run,
+        rows.append(dict(scene=scene, batch=int(b), mode="vmap" if chunk is None else f"chunks of {chunk}",
+                         particles=n, steps=steps, compile_s=compile_s, run_s=run,
                          particle_steps_per_s=b * n * steps / run))
     return rows
 
