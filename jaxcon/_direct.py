@@ -14,6 +14,12 @@ from ._substeps import substepped
 
 _METHODS = ("auto", "dense", "tridiagonal")
 
+# Chains shorter than this use the dense solve of the same (tridiagonal) matrix, whatever the method: at
+# these sizes it costs nothing, and it avoids an XLA CPU bug in jaxlib 0.10.2, where reverse mode through
+# the tridiagonal path of a 3-constraint, 2-D, float64 chain compiles a fused pad kernel that segfaults
+# (found by tests/test_gradients_all_solvers.py; the dense path of the same system is fine).
+_TRIDIAGONAL_FROM = 9
+
 
 def is_simple_chain(topo) -> bool:
     """True when constraint k joins particles k and k+1 (either orientation) for every k, in user order."""
@@ -58,6 +64,7 @@ class Direct(Solver):
       beta: Baumgarte factor in [0, 1], a differentiable leaf.
       substeps: (sub)steps per step, static, >= 1.
       method: 'auto' (tridiagonal for a simple chain, else dense), 'dense' or 'tridiagonal' (static).
+        Chains of fewer than 9 constraints are always solved densely (same system, same result).
       regularisation: relative diagonal regularisation (constraint force mixing), >= 0, a leaf; values below
         1e3 machine epsilons are raised to that.
     """
@@ -81,7 +88,7 @@ class Direct(Solver):
                 "Direct: method='tridiagonal' needs a simple chain (constraint k joining particles k and "
                 "k+1 for every k); use method='dense' or 'auto' for this model"
             )
-        return chain and self.method != "dense"
+        return chain and self.method != "dense" and topo.m >= _TRIDIAGONAL_FROM
 
     def _step(self, sys, x, v, lam, dt):
         topo = sys.topology
@@ -116,8 +123,8 @@ def _dense_solve(xu, vu, w, rest, i, j, rate, eps):
     ok = ((w[i] + w[j]) > 0) & (dist > 0)
     rows = np.arange(m)
     J = jnp.zeros((m, n, dim), xu.dtype).at[rows, i].add(-nrm).at[rows, j].add(nrm)
-    G = (J * jnp.sqrt(w)[None, :, None]).reshape(m, n * dim)
-    A = G @ G.T
+    Jf = J.reshape(m, n * dim)
+    A = (Jf * jnp.repeat(w, dim)[None, :]) @ Jf.T       # J W J^T (no sqrt(w): finite gradients at w = 0)
     both = ok[:, None] & ok[None, :]
     diag = jnp.diagonal(A)
     A = jnp.where(both, A, 0) + jnp.diag(jnp.where(ok, eps * diag, 1))
