@@ -179,10 +179,13 @@ def batched(small: bool, repeats: int) -> list:
           f"on {jax.devices()[0].platform}. vmap: one jax.vmap; chunks: jc.batched_rollout")
     print(f"{'scene':18s} {'batch':>6s} {'mode':>15s} {'compile s':>9s} {'run s':>9s} {'particle-steps/s':>17s}")
     rows = []
+    chunk = 32 if small else 1024
     for scene, sizes in cases:
-        for chunk in (None, 1024):
-            for r in batched_throughput(sizes, steps=steps, scene=scene, repeats=max(1, min(repeats, 3)),
-                                        chunk=chunk):
+        # chunked runs only where the batch is larger than a chunk (otherwise they are the vmap run)
+        for c, sz in ((None, sizes), (chunk, tuple(b for b in sizes if b > chunk))):
+            if not sz:
+                continue
+            for r in batched_throughput(sz, steps=steps, scene=scene, repeats=max(1, min(repeats, 3)), chunk=c):
                 name = "cloth_16x16" if scene == "cloth" else scene
                 print(f"{name:18s} {r['batch']:6d} {r['mode']:>15s} {r['compile_s']:9.2f} {r['run_s']:9.4f} "
                       f"{r['particle_steps_per_s']:17.3g}")

@@ -68,4 +68,5 @@ def test_bench_writes_json(tmp_path, capsys):
     assert dp["position_error_at_1s"] < 0.05
     assert "cpu" in data["machine"]
     assert {r["batch"] for r in data["batched"]} >= {1, 64}
+    assert {r["mode"] for r in data["batched"]} == {"vmap", "chunks of 32"}   # 64 = two chunks of 32
     assert all(r["particle_steps_per_s"] > 0 for r in data["batched"])

@@ -16,7 +16,7 @@ import pytest
 import jaxcon as jc
 
 DT = 1 / 120
-STEPS = 20
+STEPS = 12
 
 # name -> (solver from a dict of leaves, leaves at the point of evaluation, takes ropes)
 SOLVERS = {
@@ -30,7 +30,7 @@ SOLVERS = {
     "Direct": (lambda p: jc.Direct(beta=p["beta"]), {"beta": 0.2}, False),
     "SoftStep": (lambda p: jc.SoftStep(substeps=2, hertz=p["hertz"], damping_ratio=p["damping_ratio"]),
                  {"hertz": 30.0, "damping_ratio": 1.0}, True),
-    "RATTLE": (lambda p: jc.RATTLE(iterations=6), {}, True),
+    "RATTLE": (lambda p: jc.RATTLE(iterations=3), {}, True),
 }
 
 
