@@ -9,7 +9,7 @@ from jaxcon import _reference as ref
 model, state = jc.scenes.double_pendulum(angles=(0.5, 0.5), dtype=np.float64)
 xr = ref.double_pendulum_positions((0.5, 0.5), (1.0, 1.0), (1.0, 1.0), [1.0])[0]
 for it in (2, 3, 4):
-  for dt in (1/200, 1/250, 1/300):
+  for dt in (1/200, 1/250, 1/280, 1/300):
     steps = int(round(1/dt))
     for se in (1, steps):
         f = lambda s, se=se: jc.rollout(model, s, jc.RATTLE(it), dt, steps, save_every=se)[0]
