@@ -208,7 +208,8 @@ def _chain_scene(small, repeats, log, T):
     meta = {"error": f"tip position error (m) at t = {T} s; max_stretch: max |d - L| / L over links and steps",
             "reference": ref.describe().replace("1e-12", "1e-9") + f" ({t_ref:.1f} s to compute)",
             "dtype": "float32", "scene": f"chain({n}, {L}, {m}, end_mass={end}) released at 1.5708 rad, "
-                                         f"mass ratio {end / (m / n):.0f}:1"}
+                                         f"mass ratio {end / (m / n):.0f}:1",
+            "tip_reference": [float(v) for v in tip_ref]}
     return rows, meta, (model, state, err, name, T)
 
 
@@ -344,6 +345,48 @@ def _xpbd_paper(small, log):
 DIVERGED = 100.0  # m: an error above this is a blow-up, left out of the plots
 
 
+def _mujoco_points(small, scene_meta, log):
+    """MuJoCo hinge models of the same pendulums and chain (when `mujoco` is installed): reference curves for
+    the plots, kept apart from jaxcon's points (not in the method table or the cost budgets)."""
+    from . import _mujoco_ref as mj
+    if not mj.available():
+        print("  mujoco not installed: no MuJoCo reference curves (pip install mujoco)", flush=True)
+        return []
+    import mujoco
+    rows = []
+
+    def add(scene, lengths, masses, angles, integrator, dt, T, target, index):
+        pos, wall, finite = mj.run(lengths, masses, angles, dt, T, integrator, repeats=1 if small else 3)
+        err = float(np.max(np.abs(pos[index] - target))) if finite else float("inf")
+        steps = int(round(T / dt))
+        rows.append({"scene": scene, "solver": "MuJoCo", "config": f"MuJoCo {mujoco.__version__} ({integrator})",
+                     "integrator": integrator, "dt": dt, "steps": steps, "t_end": steps * dt, "wall_s": wall,
+                     "cost_s_per_sim_s": wall / (steps * dt), "cost_us_per_step": wall / steps * 1e6,
+                     "error": _finite_or_inf(err), "max_stretch": 0.0})
+        log(rows[-1])
+
+    T = 0.25 if small else 1.0
+    for name, angles in (("double_pendulum_mild", (0.5, 0.5)), ("double_pendulum_hard", (math.pi / 2, math.pi / 2))):
+        if name not in scene_meta:
+            continue
+        target = ref.double_pendulum_positions(angles, (1.0, 1.0), (1.0, 1.0), [T])[0]
+        grid = [("Euler", 1 / 240), ("RK4", 1 / 100)] if small else \
+            [("Euler", 1 / 240), ("Euler", 1 / 960), ("Euler", 1 / 3840), ("RK4", 1 / 100), ("RK4", 1 / 250),
+             ("RK4", 1 / 1000)]
+        for integrator, dt in grid:
+            add(name, (1.0, 1.0), (1.0, 1.0), angles, integrator, dt, T, target, slice(None))
+    n, L, m, end, _, _, masses = _chain_setup(small)
+    name = f"chain_{n}"
+    tip = np.asarray(scene_meta[name]["tip_reference"])
+    T = 0.25 if small else 1.0
+    grid = [("Euler", 1 / 240)] if small else \
+        [("Euler", 1 / 60), ("Euler", 1 / 240), ("Euler", 1 / 1000), ("Euler", 1 / 4000), ("RK4", 1 / 240),
+         ("RK4", 1 / 1000)]
+    for integrator, dt in grid:
+        add(name, np.full(n, L / n), masses, np.full(n, 1.5708), integrator, dt, T, tip, -1)
+    return rows
+
+
 def _fixed_cost(rows, budget):
     out = {}
     for s in SOLVERS:
@@ -389,6 +432,12 @@ def _plots(result, out_dir):
             pts = sorted((r["cost_s_per_sim_s"], r["error"]) for r in ok)
             if pts:
                 ax.loglog([p[0] * 1e3 for p in pts], [p[1] for p in pts], "o-", label=s, ms=4)
+        for integ in ("Euler", "RK4"):
+            pts = sorted((r["cost_s_per_sim_s"], r["error"]) for r in result.get("mujoco", [])
+                         if r["scene"] == scene and r["integrator"] == integ and 0 < r["error"] <= DIVERGED)
+            if pts:
+                ax.loglog([p[0] * 1e3 for p in pts], [p[1] for p in pts], "s--", color="k" if integ == "Euler"
+                          else "0.5", label=f"MuJoCo hinges ({integ})", ms=4)
         ax.set_xlabel("wall time per simulated second (ms)")
         ax.set_ylabel(result["scenes"][scene]["error"].split(";")[0])
         ax.set_title(scene + (f" ({diverged} diverged points, error > {DIVERGED:g} m, not shown)" if diverged else ""),
@@ -449,6 +498,8 @@ def run(small=False, out_dir=".", repeats=None, verbose=True):
         drift_rows, drift_T = _drift(small, log)
     print("[XPBD paper check]", flush=True)
     paper = _xpbd_paper(small, log)
+    print("[MuJoCo reference curves]", flush=True)
+    mujoco_rows = _mujoco_points(small, scene_meta, log)
 
     budgets = {s: float(np.median([r["cost_s_per_sim_s"] for r in points if r["scene"] == s])) for s in scene_meta}
     fixed = {s: _fixed_cost([r for r in points if r["scene"] == s], budgets[s]) for s in scene_meta}
@@ -457,7 +508,7 @@ def run(small=False, out_dir=".", repeats=None, verbose=True):
               "scenes": scene_meta, "points": points, "tradeoff": trade, "scaling": scal_rows,
               "scaling_exponent": expo, "scaling_ref_links": 16 if small else 100,
               "drift": drift_rows, "drift_T": drift_T, "xpbd_paper": paper, "budgets": budgets,
-              "fixed_cost": fixed}
+              "fixed_cost": fixed, "mujoco": mujoco_rows}
     result["table"] = _table(result)
     result["table_solvers"] = [s for s in SOLVERS if f"| {s} |" in result["table"]]
     result["plots"] = _plots(result, out_dir)
@@ -473,6 +524,8 @@ def run(small=False, out_dir=".", repeats=None, verbose=True):
             w.writerow({**r, "study": "pareto"})
         for r in trade:
             w.writerow({**r, "study": "tradeoff"})
+        for r in mujoco_rows:
+            w.writerow({**r, "study": "mujoco"})
     _print_summary(result)
     print(f"wrote {out_dir}/speed_vs_error.json, speed_vs_error.csv and {len(result['plots'])} plots "
           f"in {result['total_s']:.0f} s", flush=True)
@@ -494,6 +547,11 @@ def _print_summary(result):
     for r in result["tradeoff"]:
         print(f"  {r['config']:26s} cost {r['cost_s_per_sim_s'] * 1e3:9.3g} ms/s  tip err {r['error']:9.3g} m  "
               f"max stretch {r['max_stretch']:9.3g}")
+    if result.get("mujoco"):
+        print("\nMuJoCo hinge models of the same scenes (reference curves; rollout in C, recording every step):")
+        for r in result["mujoco"]:
+            print(f"  {r['scene']:22s} {r['config']:24s} dt 1/{round(1 / r['dt']):<5d} cost "
+                  f"{r['cost_s_per_sim_s'] * 1e3:9.3g} ms/s  error {r['error']:9.3g} m")
     p = result["xpbd_paper"]
     print(f"\nXPBD paper check ({p['setup']}):")
     for r in p["rows"]:
