@@ -114,39 +114,9 @@ def test_jacobi_converges_to_pgs_fixed_point():
     assert np.abs(few.v - pgs.v).max() > 1e-3  # not trivially equal: 5 Jacobi iterations are far off
 
 
-# ---- gradients ---------------------------------------------------------------------------------------------
-GRAD_CASES = {
-    "jacobi": (lambda p: jc.Jacobi(iterations=10, beta=p[0], relaxation=p[1]), (0.2, 0.4)),
-    "xpbd": (lambda p: jc.XPBD(iterations=2, compliance=p[0], substeps=4), (1e-5,)),
-    "penalty": (lambda p: jc.Penalty(stiffness=p[0], damping=p[1], substeps=20), (1e5, 20.0)),
-}
-
-
-@pytest.mark.parametrize("name", list(GRAD_CASES))
-def test_gradients_match_finite_differences(name):
-    make, params = GRAD_CASES[name]
-    model, state = jc.scenes.double_pendulum(angles=(0.5, 0.5), dtype=np.float64)
-    target = np.array([[0.0, 0.0], [0.6, -0.8], [1.3, -1.5]])
-
-    @jax.jit
-    def loss(rest, params):
-        final, traj = jc.rollout(model.replace(rest_length=rest), state, make(params), 1 / 120, 30)
-        return jnp.sum((final.x - target) ** 2) + 0.1 * jnp.sum(traj.lam ** 2)
-
-    rest = jnp.asarray(model.rest_length)
-    params = tuple(jnp.asarray(p, jnp.float64) for p in params)
-    g_rest, g_par = jax.grad(loss, argnums=(0, 1))(rest, params)
-    for k in range(2):
-        e = 1e-6
-        fd = (loss(rest.at[k].add(e), params) - loss(rest.at[k].add(-e), params)) / (2 * e)
-        np.testing.assert_allclose(g_rest[k], fd, rtol=1e-5, atol=1e-8)
-    for k, p in enumerate(params):
-        e = 1e-6 * abs(float(p))
-        up = tuple(q + e if i == k else q for i, q in enumerate(params))
-        dn = tuple(q - e if i == k else q for i, q in enumerate(params))
-        fd = (loss(rest, up) - loss(rest, dn)) / (2 * e)
-        np.testing.assert_allclose(g_par[k], fd, rtol=1e-4, atol=1e-10)
-        assert abs(float(g_par[k])) > 0
+# ---- gradients ----------------------------------------------------------------------------------------------
+# Against central differences for every input of every solver (Jacobi's beta and relaxation, XPBD's compliance,
+# Penalty's stiffness and damping included): tests/test_gradients_all_solvers.py.
 
 
 # ---- Penalty stability limit -------------------------------------------------------------------------------

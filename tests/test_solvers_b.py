@@ -158,38 +158,8 @@ def test_direct_duplicated_rod_and_zero_length_stay_finite():
 
 
 # ---- gradients ----------------------------------------------------------------------------------------------
-def _fd_check(loss, args, eps=1e-6, rtol=2e-5):
-    grads = jax.grad(loss, argnums=tuple(range(len(args))))(*args)
-    for k, (a, g) in enumerate(zip(args, grads)):
-        a = np.asarray(a, np.float64)
-        g = np.asarray(g).reshape(a.shape)
-        assert np.all(np.isfinite(g))
-        flat = a.reshape(-1)
-        for q in range(flat.size):
-            e = np.zeros_like(flat)
-            e[q] = eps
-            up = list(args)
-            dn = list(args)
-            up[k] = jnp.asarray((flat + e).reshape(a.shape))
-            dn[k] = jnp.asarray((flat - e).reshape(a.shape))
-            fd = (float(loss(*up)) - float(loss(*dn))) / (2 * eps)
-            np.testing.assert_allclose(g.reshape(-1)[q], fd, rtol=rtol, atol=1e-9)
-
-
-@pytest.mark.parametrize("make", [
-    lambda p: jc.Direct(beta=p),
-    lambda p: jc.SoftStep(substeps=2, hertz=30.0 * p / 0.2, damping_ratio=p * 5),
-    lambda p: jc.RATTLE(iterations=6, tolerance=p * 1e-14),
-], ids=["Direct", "SoftStep", "RATTLE"])
-def test_gradients_match_finite_differences(make):
-    model, state = jc.scenes.double_pendulum(angles=(0.8, 0.3), dtype=np.float64)
-
-    @jax.jit
-    def loss(rest, p):
-        _, tr = jc.rollout(model.replace(rest_length=rest), state, make(p), 1 / 100, 25)
-        return jnp.sum(tr.x[-1, 2] ** 2) + jnp.sum(tr.x[:, 1, 0]) + 1e-3 * jnp.sum(tr.lam)
-
-    _fd_check(loss, (jnp.asarray([1.0, 0.9]), jnp.asarray(0.2)))
+# Gradients against central differences for every input of every solver (Direct, SoftStep and RATTLE
+# included): tests/test_gradients_all_solvers.py.
 
 
 def test_gradients_finite_for_coincident_particles():
