@@ -180,18 +180,19 @@ def _pendulum_scene(name, angles, small, repeats, log):
                   "dtype": "float64", "scene": f"double_pendulum(lengths=(1, 1), masses=(1, 1), angles={angles})"}
 
 
-def _chain_setup(small):
+def _chain_setup(small, links=50):
+    """The 1000:1 chain: links of 0.1 m, 0.01 kg bobs, a 10 kg end (10 links of 0.1 m in small mode)."""
     if small:
         n, L, m, end = 10, 1.0, 0.1, 10.0
     else:
-        n, L, m, end = 50, 5.0, 0.5, 10.0
+        n, L, m, end = links, 0.1 * links, 0.01 * links, 10.0
     model, state = scenes.chain(n, L, m, end, dtype=np.float32)
     masses = np.r_[np.full(n - 1, m / n), end]
     return n, L, m, end, model, state, masses
 
 
-def _chain_scene(small, repeats, log, T):
-    n, L, m, end, model, state, masses = _chain_setup(small)
+def _chain_scene(small, repeats, log, T, links=50):
+    n, L, m, end, model, state, masses = _chain_setup(small, links)
     t0 = time.perf_counter()
     tip_ref = ref.chain_positions(np.full(n, 1.5708), np.full(n, L / n), masses, [T], rtol=1e-9, atol=1e-9)[0, -1]
     t_ref = time.perf_counter() - t0
@@ -480,6 +481,11 @@ def run(small=False, out_dir=".", repeats=None, verbose=True):
     rows, meta, chain_ctx = _chain_scene(small, repeats, log, T=0.25 if small else 1.0)
     points += rows
     scene_meta[chain_ctx[3]] = meta
+    if not small:   # the same chain twice as long (reference: DOP853 at rtol 1e-9, about 15 s)
+        print("[chain, 100 links]", flush=True)
+        rows100, meta100, ctx100 = _chain_scene(small, repeats, log, T=1.0, links=100)
+        points += rows100
+        scene_meta[ctx100[3]] = meta100
     print("[cloth]", flush=True)
     rows, meta = _cloth_scene(small, repeats, log)
     points += rows
