@@ -56,8 +56,9 @@ def bob_positions(model, qpos) -> np.ndarray:
 
 
 def run(lengths, masses, angles, dt: float, T: float, integrator: str = "Euler", repeats: int = 3):
-    """Release the chain at rest from absolute `angles`; returns (bob positions [n, 2] at t = T, median wall s
-    of the T / dt steps, max relative link stretch (0: hinges are exact), finite)."""
+    """Release the chain at rest from absolute `angles`; returns (bob positions [n, 2] at t = T (NaN if the
+    run blew up), median wall s of the T / dt steps, whether the final state is finite). Link lengths are exact
+    by construction (hinges)."""
     import mujoco
     from mujoco import rollout
 

@@ -9,17 +9,9 @@ import numpy as np
 from jax import lax
 
 from . import _layout as L
-from ._model import Model, State, Trajectory, check_state
-from ._model import _check_values as _check_values_fn
+from ._model import Model, State, Trajectory, _check_values, check_state
 from ._pytree import concrete
-from ._solver import Solver, System
-
-
-def _check_int(owner, name, value, minimum):
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{owner}: `{name}` must be a Python int (it is static), got {value!r}")
-    if value < minimum:
-        raise ValueError(f"{owner}: `{name}` must be >= {minimum}, got {value}")
+from ._solver import Solver, System, _check_int
 
 
 def _check_call(owner, model, state, solver, dt, steps=None):
@@ -162,7 +154,7 @@ def batched_rollout(model: Model, states: State, solver: Solver, dt, steps: int,
     for name in ("x", "v", "lam"):
         if np.shape(getattr(states, name))[0] != np.shape(states.x)[0]:
             raise ValueError(f"batched_rollout: `states.{name}` has a different batch size than `states.x`")
-        _check_values_fn("batched_rollout", f"states.{name}", getattr(states, name))
+        _check_values("batched_rollout", f"states.{name}", getattr(states, name))
     if steps % save_every:
         raise ValueError(f"batched_rollout: `steps` ({steps}) must be a multiple of `save_every` ({save_every})")
     return _batched_jit(model, states, solver, dt, steps, save_every, min(chunk, int(np.shape(states.x)[0])))

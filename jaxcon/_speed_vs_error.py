@@ -376,10 +376,9 @@ def _mujoco_points(small, scene_meta, log):
              ("RK4", 1 / 1000)]
         for integrator, dt in grid:
             add(name, (1.0, 1.0), (1.0, 1.0), angles, integrator, dt, T, target, slice(None))
-    n, L, m, end, _, _, masses = _chain_setup(small)
+    n, L, _, _, _, _, masses = _chain_setup(small)
     name = f"chain_{n}"
     tip = np.asarray(scene_meta[name]["tip_reference"])
-    T = 0.25 if small else 1.0
     grid = [("Euler", 1 / 240)] if small else \
         [("Euler", 1 / 60), ("Euler", 1 / 240), ("Euler", 1 / 1000), ("Euler", 1 / 4000), ("RK4", 1 / 240),
          ("RK4", 1 / 1000)]
