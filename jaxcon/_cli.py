@@ -159,6 +159,7 @@ def bench(args) -> int:
           "rollout keeping only the final state (save_every=steps); compile time measured apart (lower + "
           "compile); ns/c-iter from us/step; pos err: bob positions at t = 1 s against the stated reference.")
     out = {"machine": info, "solver": f"PGS(iterations={iterations}, beta=0.2)", "results": results}
+    out["xpbd_cloth"] = _xpbd_cloth(args.small, args.repeats)
     if jax.config.jax_enable_x64:
         out["double_pendulum_best"] = _best_double_pendulum(args.repeats)
     if not args.no_batched:
@@ -168,6 +169,32 @@ def bench(args) -> int:
             json.dump(out, f, indent=2)
         print(f"wrote {args.out}")
     return 0
+
+
+def _xpbd_cloth(small: bool, repeats: int) -> dict:
+    """XPBD(iterations=1, substeps=10) on the largest bench cloth, float32: the other solver the cloth speed
+    target names. ns per constraint-iteration counts every substep's sweep."""
+    from ._xpbd import XPBD
+
+    n, steps, dt = (8, 10, 1 / 240) if small else (64, 50, 1 / 240)
+    solver = XPBD(iterations=1, substeps=10)
+    model, state = scenes.cloth(n, n, dtype=np.float32)
+    row = {"case": f"cloth_{n}x{n}", "solver": "XPBD(iterations=1, substeps=10)", "dtype": "float32", "dt": dt,
+           "steps": steps, "constraints": model.n_constraints}
+    sweeps = model.n_constraints * solver.iterations * solver.substeps
+    for key, every in (("final_state_only", steps), ("recording", 1)):
+        fn = lambda s, every=every: rollout(model, s, solver, dt, steps, save_every=every)  # noqa: E731
+        t_c, t_run, compiled = compile_and_time(fn, state, repeats=repeats)
+        row[f"median_s_per_step_{key}"] = t_run / steps
+        row[f"ns_per_constraint_iteration_{key}"] = t_run / steps / sweeps * 1e9
+        if key == "recording":
+            row["compile_s"] = t_c
+            row["max_violation"] = float(jnp.max(violation(model, compiled(state)[1].x)))
+    print(f"\n{row['case']}, float32, {row['solver']}: {row['ns_per_constraint_iteration_recording']:.2f} ns per "
+          f"constraint-iteration recording every step, {row['ns_per_constraint_iteration_final_state_only']:.2f} "
+          f"final state only ({row['median_s_per_step_recording'] * 1e6:.0f} us/step); max violation "
+          f"{row['max_violation']:.2e}; compile {row['compile_s']:.2f} s")
+    return row
 
 
 def _best_double_pendulum(repeats: int) -> dict:

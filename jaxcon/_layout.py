@@ -13,6 +13,8 @@ from ._topology import Block, Topology
 # ---- particles ---------------------------------------------------------------------------------------------
 def particles_in(topo: Topology, x):
     """[..., n, dim] user layout -> [..., dim, *view] internal layout."""
+    if topo.order is not None:
+        x = jnp.take(x, topo.order, axis=-2)
     x = jnp.swapaxes(x, -1, -2)
     return x.reshape(x.shape[:-1] + topo.view)
 
@@ -21,11 +23,15 @@ def particles_out(topo: Topology, x):
     """[..., dim, *view] internal layout -> [..., n, dim] user layout."""
     lead = x.ndim - 1 - len(topo.view)
     x = x.reshape(x.shape[: lead + 1] + (topo.n,))
+    if topo.order is not None:
+        x = jnp.take(x, topo.pos, axis=-1)
     return jnp.swapaxes(x, -1, -2)
 
 
 def per_particle_in(topo: Topology, a):
     """[n] per-particle scalars -> [1, *view], broadcastable against internal particle arrays."""
+    if topo.order is not None:
+        a = jnp.take(a, topo.order, axis=-1)
     return a.reshape((1,) + topo.view)
 
 
@@ -46,26 +52,61 @@ def constraints_out(topo: Topology, blocks):
     return jnp.take(a, topo.inv_perm, axis=-1)
 
 
-def _box_slice(x, box):
+def _split_box(box, view):
+    """Rewrite a strided box of `view` as a contiguous box of a finer view.
+
+    An axis of size n read with step s > 1 is split into (n // s, s) when s divides n; the box's start a
+    becomes (a // s, a % s) and its count (count, 1). Reshaping the array to the finer view is free (row-major),
+    and the box then has unit steps: reads are plain slices and writes are edge pads, with no interior
+    padding. On CPU this took PGS on the 64x64 cloth from 16-18 to 9-10 ns per constraint-iteration. Returns
+    (finer view, start, count), or None when some step does not divide its axis (the box is then read with a
+    strided slice)."""
+    start, step, count = box
+    shape, st, cnt = [], [], []
+    for size, a, s, c in zip(view, start, step, count):
+        if c == 1 or s == 1:
+            shape.append(size), st.append(a), cnt.append(c)
+        elif size % s == 0:
+            shape += [size // s, s]
+            st += [a // s, a % s]
+            cnt += [c, 1]
+        else:
+            return None
+    return tuple(shape), tuple(st), tuple(cnt)
+
+
+def _box_slice(x, box, view):
+    lead = x.shape[: x.ndim - len(view)]
+    split = _split_box(box, view)
+    if split is not None:
+        shape, start, count = split
+        y = lax.slice(x.reshape(lead + shape), (0,) * len(lead) + start,
+                      lead + tuple(a + c for a, c in zip(start, count)))
+        return y.reshape(lead + box[2])
     start, step, count = box
     limit = tuple(s + st * (c - 1) + 1 for s, st, c in zip(start, step, count))
-    lead = x.ndim - len(start)
-    return lax.slice(x, (0,) * lead + start, x.shape[:lead] + limit, (1,) * lead + step)
+    return lax.slice(x, (0,) * len(lead) + start, lead + limit, (1,) * len(lead) + step)
 
 
 def _box_pad(p, box, view):
+    lead = p.shape[: p.ndim - len(view)]
+    zero = jnp.zeros((), p.dtype)
+    split = _split_box(box, view)
+    if split is not None:
+        shape, start, count = split
+        cfg = [(0, 0, 0)] * len(lead) + [(a, n - a - c, 0) for a, c, n in zip(start, count, shape)]
+        return lax.pad(p.reshape(lead + count), zero, cfg).reshape(lead + view)
     start, step, count = box
-    lead = p.ndim - len(start)
-    cfg = [(0, 0, 0)] * lead
+    cfg = [(0, 0, 0)] * len(lead)
     for s, st, c, size in zip(start, step, count, view):
         cfg.append((s, size - (s + st * (c - 1) + 1), st - 1))
-    return lax.pad(p, jnp.zeros((), p.dtype), cfg)
+    return lax.pad(p, zero, cfg)
 
 
 def gather_pair(topo: Topology, block: Block, x):
     """Endpoint values of a block: x[..., *view] -> (x_i, x_j), each [..., *block.shape]."""
     if block.strided:
-        return _box_slice(x, block.i_box), _box_slice(x, block.j_box)
+        return _box_slice(x, block.i_box, topo.view), _box_slice(x, block.j_box, topo.view)
     lead = x.ndim - len(topo.view)
     flat = x.reshape(x.shape[:lead] + (topo.n,))
     return jnp.take(flat, block.i_idx.array, axis=-1), jnp.take(flat, block.j_idx.array, axis=-1)
@@ -86,14 +127,36 @@ def scatter_pair(topo: Topology, block: Block, p_i, p_j):
 
 
 # ---- guarded geometry --------------------------------------------------------------------------------------
+def dot0(a, b):
+    """Sum of a * b over the leading (dim) axis, written out component by component.
+
+    Same value as ``jnp.sum(a * b, axis=0)``, but elementwise: on CPU, XLA sends a reduction to a separate
+    library kernel and materialises its sliced operands, while this fuses with the slices that produce a, b
+    and the update that consumes the result (one loop kernel per colour instead of four; measured on the
+    64x64 cloth)."""
+    out = a[0] * b[0]
+    for k in range(1, a.shape[0]):
+        out = out + a[k] * b[k]
+    return out
+
+
+def safe_length(d):
+    """(length, 1 / length) of vectors along the leading axis; both 0 at zero length, with finite derivatives
+    everywhere (the reciprocal square root only sees a positive argument)."""
+    d2 = jnp.sum(d * d, axis=0)
+    ok = d2 > jnp.finfo(d.dtype).tiny
+    inv = jnp.where(ok, lax.rsqrt(jnp.where(ok, d2, 1)), 0)
+    return d2 * inv, inv
+
+
 def safe_norm(d, axis=0):
     """(length, unit direction) of vectors along `axis`; at zero length the direction is 0 and every
-    derivative is finite (the square root and the division only see a positive argument)."""
-    d2 = jnp.sum(d * d, axis=axis)
-    ok = d2 > jnp.finfo(d.dtype).tiny
-    dist = jnp.where(ok, jnp.sqrt(jnp.where(ok, d2, 1)), 0)
-    inv = jnp.where(ok, 1 / jnp.where(ok, dist, 1), 0)
-    return dist, d * jnp.expand_dims(inv, axis)
+    derivative is finite."""
+    if axis != 0:
+        dist, n = safe_norm(jnp.moveaxis(d, axis, 0))
+        return dist, jnp.moveaxis(n, 0, axis)
+    dist, inv = safe_length(d)
+    return dist, d * inv
 
 
 def safe_reciprocal(a):

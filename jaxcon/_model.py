@@ -189,7 +189,9 @@ def build(
       colouring: optional [m] colour per constraint; default greedy in the given order. It is checked:
         constraints of one colour may not share a particle.
       grid_shape: optional shape whose product is n, used as the internal particle layout (lets regular
-        structures solve colours with strided slices instead of gathers).
+        structures solve colours with strided slices instead of gathers). When a colour steps by 2 along its
+        last axis and that axis is even, the layout stores that axis as even entries then odd ones; states
+        stay in your particle order either way.
 
     Returns:
       (model, state).

@@ -224,7 +224,7 @@ class PGS(Solver):
             lam = list(lam)
             for c, (blk, f, b) in enumerate(zip(topo.blocks, fr, bias)):
                 vi, vj = L.gather_pair(topo, blk, v)
-                rel = jnp.sum((vj - vi) * f.n, axis=0)
+                rel = L.dot0(vj - vi, f.n)
                 new = clamp_ropes(blk, lam[c] + (rel + b) * f.k)
                 p = f.n * (new - lam[c])
                 lam[c] = new

@@ -9,6 +9,12 @@ order holds between colours. Internally particles are stored struct-of-arrays as
   structured cloth colourings). Reading is a strided slice, writing back is a pad: no gather, no scatter.
 * a gather block otherwise. Reading is a gather; writing back is also a gather, from the block's impulses into
   particle order (each particle appears at most once per colour, so no scatter-add is needed).
+
+The internal particle order may differ from the user's. When a colour steps by 2 along the last (contiguous)
+axis of a grid view, e.g. a cloth's horizontal edges split by column parity, that axis of size n is stored as
+(2, n // 2), even columns first: every such colour then reads and writes whole contiguous rows. On CPU the
+column-parity colours of a 64x64 cloth ran 4 to 7x slower than the row-parity ones in the plain layout, and
+as fast in the split one. ``order`` (internal position -> user particle) and ``pos`` (its inverse) convert.
 """
 from __future__ import annotations
 
@@ -107,15 +113,15 @@ class Topology:
         self.j = np.asarray(j, np.int64)
         self.is_rope = np.asarray(is_rope, bool)
         self.colour = np.asarray(colour, np.int64)
-        self.view = tuple(int(s) for s in view)
+        self.grid = tuple(int(s) for s in view)    # the view asked for, in user particle order
         self.m = len(self.i)
         for a in (self.i, self.j, self.is_rope, self.colour):
             a.setflags(write=False)
         self.has_ropes = bool(self.is_rope.any())
         self.has_rods = bool((~self.is_rope).any())
-        self._build_blocks()
+        self._choose_layout()
         self._key = (
-            self.n, self.dim, self.view, self.i.tobytes(), self.j.tobytes(), self.is_rope.tobytes(),
+            self.n, self.dim, self.grid, self.i.tobytes(), self.j.tobytes(), self.is_rope.tobytes(),
             self.colour.tobytes(),
         )
         self._hash = hash(self._key)
@@ -124,12 +130,36 @@ class Topology:
     def n_colours(self) -> int:
         return len(self.blocks)
 
-    def _build_blocks(self):
-        n, view = self.n, self.view
+    def _choose_layout(self):
+        """Plain view, or the view with its last axis parity-split when that keeps every strided colour
+        strided and some colour steps by 2 along that axis (see the module docstring)."""
+        plain = self._build_blocks(self.grid, None)
+        last = self.grid[-1]
+        minor_step2 = any(b.i_box is not None and b.i_box[1][-1] == 2 and b.i_box[2][-1] > 1 for b in plain[0])
+        if last % 2 == 0 and last >= 4 and minor_step2:
+            view = self.grid[:-1] + (2, last // 2)
+            lead, col = np.divmod(np.arange(self.n), last)
+            pos = lead * last + (col % 2) * (last // 2) + col // 2
+            split = self._build_blocks(view, pos)
+            if sum(b.strided for b in split[0]) >= sum(b.strided for b in plain[0]):
+                self.view, self.pos, self.order = view, pos.astype(np.int32), np.argsort(pos).astype(np.int32)
+                self.pos.setflags(write=False)
+                self.order.setflags(write=False)
+                self.blocks, self.perm, self.inv_perm = split
+                return
+        self.view, self.pos, self.order = self.grid, None, None
+        self.blocks, self.perm, self.inv_perm = plain
+
+    def _build_blocks(self, view, pos):
+        """Blocks for particles laid out in `view`, user particle p at flat position pos[p] (identity if None).
+        Returns (blocks, perm, inv_perm)."""
+        n = self.n
         # Orient every constraint with i < j (a distance constraint is symmetric), so regular structures
         # give a constant endpoint offset and hence strided boxes.
         lo = np.minimum(self.i, self.j)
         hi = np.maximum(self.i, self.j)
+        if pos is not None:
+            lo, hi = pos[lo], pos[hi]
         order, blocks, offset = [], [], 0
         for c in np.unique(self.colour):
             ks = np.nonzero(self.colour == c)[0]
@@ -161,12 +191,11 @@ class Topology:
             order.append(ks)
             offset += len(ks)
         perm = np.concatenate(order) if order else np.zeros(0, np.int64)
-        self.blocks = tuple(blocks)
         # perm[q] = user index of the constraint at colour-ordered position q; inv_perm is its inverse.
-        self.perm = perm.astype(np.int32)
-        self.inv_perm = np.argsort(perm).astype(np.int32)
-        self.perm.setflags(write=False)
-        self.inv_perm.setflags(write=False)
+        perm, inv_perm = perm.astype(np.int32), np.argsort(perm).astype(np.int32)
+        perm.setflags(write=False)
+        inv_perm.setflags(write=False)
+        return tuple(blocks), perm, inv_perm
 
     def __hash__(self):
         return self._hash
@@ -180,4 +209,4 @@ class Topology:
         kinds = f"{int((~self.is_rope).sum())} rods, {int(self.is_rope.sum())} ropes"
         strided = sum(b.strided for b in self.blocks)
         return (f"Topology(n={self.n}, dim={self.dim}, {kinds}, {self.n_colours} colours "
-                f"({strided} strided), view={self.view})")
+                f"({strided} strided), view={self.view}{'' if self.order is None else ', parity-split'})")

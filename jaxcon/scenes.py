@@ -85,18 +85,26 @@ def chain(n_links: int = 50, length: float = 5.0, mass: float = 0.5, end_mass: f
 
 def cloth_edges(nx: int, ny: int):
     """Structural and shear edges of an nx-by-ny grid (row-major particle index r * nx + c) and a colouring
-    with 8 colours whose every colour is a strided box of the grid: horizontal and vertical edges split by
-    column / row parity, both diagonals split by row parity."""
+    with 8 colours whose every colour is a strided box of the grid: horizontal edges split by column parity,
+    vertical edges by row parity, and each diagonal direction by column parity when nx is even (by row
+    parity when it is odd). With nx even, the model stores each row as its even columns then its odd ones
+    (see jaxcon._topology), and every colour, diagonals included, is then one box of whole contiguous rows."""
     idx = np.arange(nx * ny).reshape(ny, nx)
     groups = []
     for c0 in (0, 1):
         groups.append((idx[:, c0:-1:2], idx[:, c0 + 1::2]))
     for r0 in (0, 1):
         groups.append((idx[r0:-1:2, :], idx[r0 + 1::2, :]))
-    for r0 in (0, 1):
-        groups.append((idx[r0:-1:2, :-1], idx[r0 + 1::2, 1:]))
-    for r0 in (0, 1):
-        groups.append((idx[r0:-1:2, 1:], idx[r0 + 1::2, :-1]))
+    if nx % 2 == 0:
+        for c0 in (0, 1):
+            groups.append((idx[:-1, c0:-1:2], idx[1:, c0 + 1::2]))
+        for c0 in (0, 1):
+            groups.append((idx[:-1, c0 + 1::2], idx[1:, c0:-1:2]))
+    else:
+        for r0 in (0, 1):
+            groups.append((idx[r0:-1:2, :-1], idx[r0 + 1::2, 1:]))
+        for r0 in (0, 1):
+            groups.append((idx[r0:-1:2, 1:], idx[r0 + 1::2, :-1]))
     pairs, colour = [], []
     for c, (a, b) in enumerate(groups):
         if a.size:

@@ -67,6 +67,9 @@ def test_bench_writes_json(tmp_path, capsys):
     dp = [r for r in rows if r["case"] == "double_pendulum"][0]
     assert dp["position_error_at_1s"] < 0.05
     assert "cpu" in data["machine"]
+    xp = data["xpbd_cloth"]
+    assert xp["case"] == "cloth_8x8" and xp["ns_per_constraint_iteration_recording"] > 0
+    assert 0 < xp["max_violation"] < 0.05
     assert {r["batch"] for r in data["batched"]} >= {1, 64}
     assert {r["mode"] for r in data["batched"]} == {"vmap", "chunks of 32"}   # 64 = two chunks of 32
     assert all(r["particle_steps_per_s"] > 0 for r in data["batched"])
