@@ -100,7 +100,7 @@ class Direct(Solver):
         tri = self._use_tridiagonal(topo)
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
-        w = sys.w.reshape(-1)
+        w = L.per_particle_out(topo, sys.w)       # user order, like the states below
         rest = L.constraints_out(topo, sys.rest)
         eps = _regularisation(self.regularisation, dtype)
 

@@ -35,6 +35,12 @@ def per_particle_in(topo: Topology, a):
     return a.reshape((1,) + topo.view)
 
 
+def per_particle_out(topo: Topology, a):
+    """Inverse of `per_particle_in`: [1, *view] -> [n] in user particle order."""
+    a = a.reshape(topo.n)
+    return a if topo.order is None else jnp.take(a, topo.pos)
+
+
 # ---- constraints -------------------------------------------------------------------------------------------
 def constraints_in(topo: Topology, a):
     """[..., m] in the user's constraint order -> tuple of [..., *block.shape], one per block."""
