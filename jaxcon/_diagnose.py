@@ -9,7 +9,7 @@ from typing import Any, NamedTuple, Optional
 
 import jax.numpy as jnp
 
-from ._diagnostics import energy, kinetic_energy, violation
+from ._diagnostics import energy, kinetic_energy, nan_max, violation
 from ._model import Model, State, Trajectory
 
 Array = Any
@@ -59,7 +59,7 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
     if jnp.ndim(traj.x) != 3:
         raise ValueError(f"diagnose: `traj.x` must be [steps, n, dim] (vmap diagnose over batches), got shape {jnp.shape(traj.x)}")
     x, v = traj.x, traj.v
-    viol = jnp.max(violation(model, x), axis=-1)
+    viol = nan_max(violation(model, x), axis=-1)
     e = energy(model, x, v)
     x0, v0 = (x[0], v[0]) if state0 is None else (state0.x, state0.v)
     e0 = energy(model, x0, v0)

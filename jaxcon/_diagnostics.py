@@ -7,6 +7,16 @@ from ._layout import safe_norm
 from ._model import Model
 
 
+def nan_max(a, axis=None):
+    """jnp.max that returns NaN wherever the reduced values contain a NaN.
+
+    XLA semantics propagate NaN through max, but on CPU jaxlib 0.10.2 reduces large arrays (4096 values and
+    more) with a kernel that skips NaN: jnp.max of 4095 ones and a NaN returns 1.0, and a slice of NaN rows
+    returned -inf. Diagnostics must not turn a diverged run into a finite number, so they reduce with this."""
+    a = jnp.asarray(a)
+    return jnp.where(jnp.any(jnp.isnan(a), axis=axis), jnp.nan, jnp.max(a, axis=axis))
+
+
 def _masses(model: Model):
     w = jnp.asarray(model.inv_mass)
     free = w > 0
@@ -29,7 +39,7 @@ def energy_drift(model: Model, state, traj):
     (< 0), relative to the energy it exchanged. Fixed particles are excluded."""
     e0 = energy(model, state.x, state.v)
     e1 = energy(model, traj.x[-1], traj.v[-1])
-    ke = jnp.max(kinetic_energy(model, traj.v), axis=0)
+    ke = nan_max(kinetic_energy(model, traj.v), axis=0)
     return (e1 - e0) / jnp.maximum(ke, jnp.finfo(ke.dtype).tiny)
 
 

@@ -21,13 +21,12 @@ import os
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from . import _reference as ref
 from . import scenes
 from ._cli import compile_and_time, machine
-from ._diagnostics import energy_drift, violation
+from ._diagnostics import energy_drift, nan_max, violation
 from ._direct import Direct
 from ._jacobi import Jacobi
 from ._penalty import Penalty
@@ -171,7 +170,7 @@ def _pendulum_scene(name, angles, small, repeats, log):
 
     def err(final, tr):
         return {"error": _finite_or_inf(np.max(np.abs(np.asarray(final.x[1:]) - x_ref))),
-                "max_stretch": _finite_or_inf(jnp.max(violation(model, tr.x))),
+                "max_stretch": _finite_or_inf(nan_max(violation(model, tr.x))),
                 "energy_drift": _finite_or_inf(energy_drift(model, state, tr))}
 
     rows = []
@@ -201,7 +200,7 @@ def _chain_scene(small, repeats, log, T, links=50):
 
     def err(final, tr):
         return {"error": _finite_or_inf(np.max(np.abs(np.asarray(final.x[-1], np.float64) - tip_ref))),
-                "max_stretch": _finite_or_inf(jnp.max(violation(model, tr.x)))}
+                "max_stretch": _finite_or_inf(nan_max(violation(model, tr.x)))}
 
     name = f"chain_{n}"
     rows = []
@@ -233,7 +232,7 @@ def _cloth_scene(small, repeats, log):
 
     def err(final, tr):
         return {"error": _finite_or_inf(np.max(np.abs(np.asarray(final.x, np.float64) - x_ref))),
-                "max_stretch": _finite_or_inf(jnp.max(violation(model, tr.x)))}
+                "max_stretch": _finite_or_inf(nan_max(violation(model, tr.x)))}
 
     name = f"cloth_{nx}x{nx}"
     rows = []
@@ -307,7 +306,7 @@ def _drift(small, log):
         _, tr = jax.jit(lambda s, solver=solver, dt=dt, steps=steps: rollout(model, s, solver, dt, steps))(state)
         rows.append({"solver": type(solver).__name__, "config": _label(solver), "dt": dt, "t_end": steps * dt,
                      "energy_drift": _finite_or_inf(energy_drift(model, state, tr)),
-                     "violation_end": _finite_or_inf(jnp.max(violation(model, tr.x[-1])))})
+                     "violation_end": _finite_or_inf(nan_max(violation(model, tr.x[-1])))})
         log(rows[-1])
     return rows, T
 

@@ -378,3 +378,22 @@ def test_implicit_differentiation_of_converged_multipliers():
     rope_model, rope_state = jc.scenes.chain(n_links=3, kind="rope")
     with pytest.raises(ValueError, match="ropes"):
         jc.rollout(rope_model, rope_state, jc.PGS(implicit=True), 1 / 240, 2)
+
+
+def test_diagnostics_keep_nan_in_large_maxima():
+    """jaxlib 0.10.2's CPU max over 4096+ values skips NaN; the diagnostics must still report it."""
+    from jaxcon._diagnostics import nan_max
+    a = np.ones((3, 5000), np.float32)
+    a[1, 17] = np.nan
+    out = np.asarray(nan_max(a, axis=-1))
+    assert out[0] == 1.0 and np.isnan(out[1]) and out[2] == 1.0
+    assert np.isnan(float(nan_max(a)))
+    # a trajectory that turns NaN on a model with > 4096 constraints: per-step violation is NaN, flagged
+    model, state = jc.scenes.cloth(33, 33)
+    assert model.n_constraints > 4096
+    _, tr = jc.rollout(model, state, jc.PGS(iterations=1), 1 / 60, 3)
+    x = np.asarray(tr.x).copy()
+    x[2] = np.nan
+    bad = jc.Trajectory(jnp.asarray(x), tr.v, tr.lam)
+    d = jc.diagnose(model, bad)
+    assert np.isnan(np.asarray(d.violation)[2]) and bool(d.diverged) and int(d.first_bad) == 2
