@@ -5,6 +5,7 @@ These are the building blocks every solver uses; none of them loops over particl
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 from ._topology import Block, Topology
@@ -146,11 +147,17 @@ def dot0(a, b):
     return out
 
 
+def min_length2(dtype):
+    """Squared lengths at or below this count as zero length: sqrt of the smallest normal number (1.1e-19 in
+    float32, i.e. 3.3e-10 m). Any smaller and the derivative of 1/|d| (|d|^-3) overflows to inf and then NaN."""
+    return float(np.sqrt(np.finfo(dtype).tiny))
+
+
 def safe_length(d):
-    """(length, 1 / length) of vectors along the leading axis; both 0 at zero length, with finite derivatives
-    everywhere (the reciprocal square root only sees a positive argument)."""
+    """(length, 1 / length) of vectors along the leading axis; both 0 at zero length (see `min_length2`),
+    with finite derivatives everywhere (the reciprocal square root only sees an argument above that)."""
     d2 = jnp.sum(d * d, axis=0)
-    ok = d2 > jnp.finfo(d.dtype).tiny
+    ok = d2 > min_length2(d.dtype)
     inv = jnp.where(ok, lax.rsqrt(jnp.where(ok, d2, 1)), 0)
     return d2 * inv, inv
 

@@ -68,7 +68,7 @@ class XPBD(Solver):
                 # (L.dot0), the update kernels were split and re-summed every colour: 8 to 15x slower
                 # on the 64x64 cloth.
                 d2 = jnp.sum(d * d, axis=0)
-                ok = d2 > jnp.finfo(d.dtype).tiny
+                ok = d2 > L.min_length2(d.dtype)
                 inv = jnp.where(ok, lax.rsqrt(jnp.where(ok, d2, 1)), 0)
                 dmu = (d2 * inv - rest - alpha * mu[c]) * k
                 new = clamp_ropes(blk, mu[c] + dmu * ok)

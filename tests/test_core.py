@@ -397,3 +397,19 @@ def test_diagnostics_keep_nan_in_large_maxima():
     bad = jc.Trajectory(jnp.asarray(x), tr.v, tr.lam)
     d = jc.diagnose(model, bad)
     assert np.isnan(np.asarray(d.violation)[2]) and bool(d.diverged) and int(d.first_bad) == 2
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_guarded_length_has_finite_gradients_near_zero(dtype):
+    """|d| from 0 to 1e-9, including lengths whose |d|^-3 overflows the dtype: finite values and gradients."""
+    from jaxcon import _layout as L
+    for s in (0.0, 1e-30, 1e-18, 1e-15, 1e-12, 1e-10, 1e-9):
+        d = jnp.asarray([s, 0.0, 0.0], dtype)
+        f = lambda d: L.safe_length(d)[0] + L.safe_length(d)[1] * 1e-20 + jnp.sum(L.safe_norm(d)[1])
+        assert np.isfinite(float(f(d))) and np.all(np.isfinite(np.asarray(jax.grad(f)(d)))), (dtype, s)
+    # through a rollout: two particles 1e-15 m apart, gradient wrt the positions
+    model, state = jc.build(np.array([[0.0, 0.0], [1e-15, 0.0]], dtype), [1.0, 1.0], rods=[(0, 1)],
+                            rest_lengths=[0.5])
+    for solver in (jc.PGS(), jc.XPBD()):
+        g = jax.grad(lambda x: jnp.sum(jc.rollout(model, jc.State(x, state.v, state.lam), solver, 1 / 60, 3)[0].x ** 2))(state.x)
+        assert np.all(np.isfinite(np.asarray(g))), type(solver).__name__
