@@ -145,7 +145,7 @@ def _dense_solve(xu, vu, w, rest, i, j, rate, eps):
     dist, nrm = L.safe_norm(xu[j] - xu[i], axis=-1)          # [m], [m, dim]
     ok = ((w[i] + w[j]) > 0) & (dist > 0)
     ca, cb, cp, sg = _coupling(np.asarray(i), np.asarray(j))
-    vals = sg * w[cp] * jnp.sum(nrm[ca] * nrm[cb], -1)
+    vals = jnp.asarray(sg, xu.dtype) * w[cp] * jnp.sum(nrm[ca] * nrm[cb], -1)
     A = jnp.zeros((m, m), xu.dtype).at[ca, cb].add(vals)   # J W J^T (no sqrt(w): finite gradients at w = 0)
     both = ok[:, None] & ok[None, :]
     diag = jnp.diagonal(A)
