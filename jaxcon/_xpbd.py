@@ -65,7 +65,7 @@ class XPBD(Solver):
                 # |d|^2 and 1/|d| (rods need no clamp: 1/|d| is 0 at zero length). Keep |d|^2 a reduction:
                 # on CPU, XLA stores d and |d|^2 as arrays before it, so the position update below reads
                 # them instead of recomputing the projection per particle. Written as an elementwise dot
-                # (L.dot0), the update kernels were split and re-summed every colour: 8 to 15x slower
+                # (L.dot0), the update kernels were split and re-summed every colour: 8 to 16x slower
                 # on the 64x64 cloth.
                 d2 = jnp.sum(d * d, axis=0)
                 ok = d2 > L.min_length2(d.dtype)
