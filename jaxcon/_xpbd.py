@@ -62,16 +62,14 @@ class XPBD(Solver):
                 pi, pj = L.gather_pair(topo, blk, p)
                 d = pj - pi
                 # n (new - mu) with n = d / |d| is written as d times one scalar per constraint, built from
-                # |d|^2 and 1/|d| (rods need no clamp: 1/|d| is 0 at zero length). Keep |d|^2 a reduction:
-                # on CPU, XLA stores d and |d|^2 as arrays before it, so the position update below reads
+                # |d|^2 and 1/|d| (rods need no clamp: 1/|d| is 0 at zero length). `safe_length` keeps |d|^2
+                # a reduction: on CPU, XLA stores d and |d|^2 as arrays before it, so the update below reads
                 # them instead of recomputing the projection per particle. Written as an elementwise dot
                 # (L.dot0), the update kernels were split and re-summed every colour: 8 to 16x slower
                 # on the 64x64 cloth.
-                d2 = jnp.sum(d * d, axis=0)
-                ok = d2 > L.min_length2(d.dtype)
-                inv = jnp.where(ok, lax.rsqrt(jnp.where(ok, d2, 1)), 0)
-                dmu = (d2 * inv - rest - alpha * mu[c]) * k
-                new = clamp_ropes(blk, mu[c] + dmu * ok)
+                dist, inv = L.safe_length(d)
+                dmu = (dist - rest - alpha * mu[c]) * k
+                new = clamp_ropes(blk, mu[c] + dmu * (inv > 0))
                 q = d * (((new - mu[c]) if blk.has_rope else dmu) * inv)
                 mu[c] = new
                 p = p + L.scatter_pair(topo, blk, wi * q, -wj * q)
