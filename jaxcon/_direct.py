@@ -1,6 +1,7 @@
 """Direct solver: all multipliers of a (sub)step at once from one linear solve."""
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax.numpy as jnp
@@ -110,17 +111,19 @@ class Direct(Solver):
             if tri:
                 lam_u, vu = _chain_solve(xu, vu, w, rest, beta / h, eps)
             else:
-                lam_u, vu = _dense_solve(xu, vu, w, rest, topo.i, topo.j, beta / h, eps)
+                lam_u, vu = _dense_solve(xu, vu, w, rest, topo, beta / h, eps)
             v = L.particles_in(topo, vu)
             return x + h * v, v, L.constraints_in(topo, lam_u)
 
         return substepped(substep, self.substeps, x, v, lam, dt)
 
 
-def _coupling(i, j):
+@functools.lru_cache(maxsize=64)
+def _coupling(topo):
     """Static sparsity of J M^-1 J^T: every (a, b, p, sign) with constraints a and b both touching particle p,
-    sign = s_ap s_bp where s = -1 at a constraint's first endpoint and +1 at its second."""
-    m = len(i)
+    sign = s_ap s_bp where s = -1 at a constraint's first endpoint and +1 at its second. Computed once per
+    topology (topologies hash by content), not at every trace."""
+    i, j, m = topo.i, topo.j, topo.m
     ends = np.concatenate([i, j])
     cons = np.concatenate([np.arange(m), np.arange(m)])
     sgn = np.concatenate([-np.ones(m), np.ones(m)])
@@ -138,13 +141,13 @@ def _coupling(i, j):
     return tuple(np.concatenate(x) for x in (a, b, p, s))
 
 
-def _dense_solve(xu, vu, w, rest, i, j, rate, eps):
+def _dense_solve(xu, vu, w, rest, topo, rate, eps):
     """One dense solve of J W J^T lam = b. The matrix is assembled entry by entry from the pairs of
     constraints that share a particle (O(sum of squared degrees), not O(m^2 n)); the solve is O(m^3)."""
-    m = len(i)
+    i, j, m = topo.i, topo.j, topo.m
     dist, nrm = L.safe_norm(xu[j] - xu[i], axis=-1)          # [m], [m, dim]
     ok = ((w[i] + w[j]) > 0) & (dist > 0)
-    ca, cb, cp, sg = _coupling(np.asarray(i), np.asarray(j))
+    ca, cb, cp, sg = _coupling(topo)
     vals = jnp.asarray(sg, xu.dtype) * w[cp] * jnp.sum(nrm[ca] * nrm[cb], -1)
     A = jnp.zeros((m, m), xu.dtype).at[ca, cb].add(vals)   # J W J^T (no sqrt(w): finite gradients at w = 0)
     both = ok[:, None] & ok[None, :]
