@@ -88,7 +88,7 @@ def cloth_edges(nx: int, ny: int):
     with 8 colours whose every colour is a strided box of the grid: horizontal edges split by column parity,
     vertical edges by row parity, and each diagonal direction by column parity when nx is even (by row
     parity when it is odd). With nx even, the model stores each row as its even columns then its odd ones
-    (see jaxcon._topology), and every colour, diagonals included, is then one box of whole contiguous rows."""
+    (see jaxcon._topology), and every colour, diagonals included, is then one box of unit-step row runs."""
     idx = np.arange(nx * ny).reshape(ny, nx)
     groups = []
     for c0 in (0, 1):

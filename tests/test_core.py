@@ -129,7 +129,7 @@ def test_strided_and_gather_layouts_agree(solver):
     pairs, colour = jc.scenes.cloth_edges(6, 5)
     general, gstate = jc.build(state.x, 1 / 30 * np.ones(30), rods=pairs, fixed=[0, 5], colouring=colour)
     t = model.topology
-    assert all(b.strided for b in t.blocks) and t.view == (5, 2, 3) and t.order is not None
+    assert all(b.strided for b in t.blocks) and t.view == (5, 6) and t.order is not None
     assert not all(b.strided for b in general.topology.blocks)
     _, a = jc.rollout(model, state, solver, 1 / 240, 40)
     _, b = jc.rollout(general, gstate, solver, 1 / 240, 40)
@@ -144,7 +144,9 @@ def test_parity_split_only_where_it_helps():
     odd, _ = jc.scenes.cloth(7, 5)
     assert odd.topology.order is None and odd.topology.view == (5, 7)
     even_chain, _ = jc.scenes.chain(n_links=21)                  # 22 particles, colours step by 2
-    assert even_chain.topology.view == (2, 11)
+    assert even_chain.topology.order is not None and even_chain.topology.view == (22,)
+    # stored even positions first: both colours are then contiguous runs (unit steps)
+    assert all(b.strided and set(b.i_box[1]) == {1} for b in even_chain.topology.blocks)
     odd_chain, _ = jc.scenes.chain(n_links=20)
     assert odd_chain.topology.order is None
     # the user's order survives: positions in = positions out, through one zero-length rollout step
