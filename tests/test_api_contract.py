@@ -76,8 +76,8 @@ def test_bench_writes_json(tmp_path, capsys):
 
 
 def test_bench_best_double_pendulum_row():
-    """The bench's float64 row for the 1e-5 m target: RATTLE(3), dt 1/280 reaches it (accuracy, not timing)."""
+    """The bench's float64 row for the 1e-5 m target: RATTLE(3), dt 1/260 reaches it (accuracy, not timing)."""
     from jaxcon._cli import _best_double_pendulum
     row = _best_double_pendulum(1)
-    assert row["position_error_at_1s"] < 1e-5
+    assert row["dt"] == 1 / 260 and row["position_error_at_1s"] < 1e-5
     assert row["ms_per_sim_s_final_state_only"] > 0 and row["ms_per_sim_s_recording"] > 0
