@@ -114,7 +114,7 @@ class Topology:
         self.j = np.asarray(j, np.int64)
         self.is_rope = np.asarray(is_rope, bool)
         self.colour = np.asarray(colour, np.int64)
-        self.grid = tuple(int(s) for s in view)    # the view asked for, in user particle order
+        self.view = tuple(int(s) for s in view)    # the particle grid's shape (internal order: see pos / order)
         self.m = len(self.i)
         for a in (self.i, self.j, self.is_rope, self.colour):
             a.setflags(write=False)
@@ -122,7 +122,7 @@ class Topology:
         self.has_rods = bool((~self.is_rope).any())
         self._choose_layout()
         self._key = (
-            self.n, self.dim, self.grid, self.i.tobytes(), self.j.tobytes(), self.is_rope.tobytes(),
+            self.n, self.dim, self.view, self.i.tobytes(), self.j.tobytes(), self.is_rope.tobytes(),
             self.colour.tobytes(),
         )
         self._hash = hash(self._key)
@@ -135,26 +135,25 @@ class Topology:
         """User order, or each row of the last axis stored evens first (parity split) when that keeps every
         strided colour strided and some colour steps by 2 along that axis (see the module docstring). The view
         is the grid's shape either way."""
-        plain = self._build_blocks(self.grid, None)
-        last = self.grid[-1]
+        plain = self._build_blocks(None)
+        last = self.view[-1]
         minor_step2 = any(b.i_box is not None and b.i_box[1][-1] == 2 and b.i_box[2][-1] > 1 for b in plain[0])
         if last % 2 == 0 and last >= 4 and minor_step2:
-            view = self.grid
             lead, col = np.divmod(np.arange(self.n), last)
             pos = lead * last + (col % 2) * (last // 2) + col // 2
-            split = self._build_blocks(view, pos)
+            split = self._build_blocks(pos)
             if sum(b.strided for b in split[0]) >= sum(b.strided for b in plain[0]):
-                self.view, self.pos, self.order = view, pos.astype(np.int32), np.argsort(pos).astype(np.int32)
+                self.pos, self.order = pos.astype(np.int32), np.argsort(pos).astype(np.int32)
                 self.pos.setflags(write=False)
                 self.order.setflags(write=False)
                 self.blocks, self.perm, self.inv_perm = split
                 return
-        self.view, self.pos, self.order = self.grid, None, None
+        self.pos, self.order = None, None
         self.blocks, self.perm, self.inv_perm = plain
 
-    def _build_blocks(self, view, pos):
-        """Blocks for particles laid out in `view`, user particle p at flat position pos[p] (identity if None).
-        Returns (blocks, perm, inv_perm)."""
+    def _build_blocks(self, pos):
+        """Blocks for particles laid out in `self.view`, user particle p at flat position pos[p] (identity if
+        None). Returns (blocks, perm, inv_perm)."""
         n = self.n
         # Orient every constraint with i < j (a distance constraint is symmetric), so regular structures
         # give a constant endpoint offset and hence strided boxes.
@@ -166,8 +165,8 @@ class Topology:
         for c in np.unique(self.colour):
             ks = np.nonzero(self.colour == c)[0]
             ks = ks[np.argsort(lo[ks], kind="stable")]
-            ci = np.stack(np.unravel_index(lo[ks], view), -1)
-            cj = np.stack(np.unravel_index(hi[ks], view), -1)
+            ci = np.stack(np.unravel_index(lo[ks], self.view), -1)
+            cj = np.stack(np.unravel_index(hi[ks], self.view), -1)
             ibox = _strided_box(ci)
             jbox = None
             if ibox is not None:
