@@ -31,19 +31,53 @@ def machine() -> dict:
             "jax": jax.__version__, "python": platform.python_version()}
 
 
-def compile_and_time(fn, *args, repeats=7):
-    """(compile seconds, median run seconds after compilation) of jit(fn)(*args)."""
+def _cpu_jiffies():
+    """(steal, total) CPU time of this machine in clock ticks, summed over its CPUs (/proc/stat), or None where
+    the file is missing. Steal is time a virtual machine's CPUs were ready to run but the hypervisor ran
+    another guest; on a shared host it is what makes the same benchmark vary between runs."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+    except OSError:
+        return None
+    if not fields or fields[0] != "cpu":
+        return None
+    ticks = [int(v) for v in fields[1:9]]      # user nice system idle iowait irq softirq steal
+    return (ticks[7] if len(ticks) > 7 else 0), sum(ticks)
+
+
+def steal_fraction(before, after, min_ticks=50):
+    """Share of the machine's CPU time stolen by the hypervisor between two `_cpu_jiffies()` readings, or None
+    when it cannot be told: no /proc/stat, or fewer than `min_ticks` clock ticks in between (at the usual 100
+    ticks per second and CPU, one tick more or less would move a shorter reading by over 2 points)."""
+    if before is None or after is None or after[1] - before[1] < min_ticks:
+        return None
+    return (after[0] - before[0]) / (after[1] - before[1])
+
+
+def compile_and_time(fn, *args, repeats=7, stats=None):
+    """(compile seconds, median run seconds after compilation, compiled) of jit(fn)(*args).
+
+    stats: an optional dict, filled with the fastest run ("min_s") and the hypervisor's steal share of the
+    machine's CPU time during the timed runs ("steal", None where unknown)."""
     jf = jax.jit(fn)
     t0 = time.perf_counter()
     compiled = jf.lower(*args).compile()
     t_compile = time.perf_counter() - t0
     jax.block_until_ready(compiled(*args))
     times = []
+    before = _cpu_jiffies()
     for _ in range(repeats):
         t0 = time.perf_counter()
         jax.block_until_ready(compiled(*args))
         times.append(time.perf_counter() - t0)
+    if stats is not None:
+        stats.update(min_s=float(np.min(times)), steal=steal_fraction(before, _cpu_jiffies()))
     return t_compile, float(np.median(times)), compiled
+
+
+def _pct(fraction):
+    return "   n/a" if fraction is None else f"{100 * fraction:5.1f}%"
 
 
 def _scene_list(small: bool):
@@ -120,11 +154,12 @@ def bench(args) -> int:
     iterations, dt = 10, 1 / 240
     solver = PGS(iterations=iterations, beta=0.2)
     info = machine()
+    start = _cpu_jiffies()
     results = []
     print(f"jaxcon bench: PGS(iterations={iterations}), dt = 1/240 s; {info['cpu']}, {info['cores']} cores, "
           f"jax {info['jax']} on {info['platform']}")
     head = (f"{'case':18s} {'dtype':7s} {'compile s':>9s} {'us/step':>10s} {'no record':>10s} {'ns/c-iter':>9s} "
-            f"{'max viol':>9s} {'E drift':>9s} {'pos err':>9s}")
+            f"{'max viol':>9s} {'E drift':>9s} {'pos err':>9s} {'steal':>6s}")
     print(head)
     print("-" * len(head))
     dtypes = [np.float32] + ([np.float64] if jax.config.jax_enable_x64 else [])
@@ -132,16 +167,20 @@ def bench(args) -> int:
         for dtype in dtypes:
             model, state = make(dtype)
             fn = lambda s, model=model, steps=steps: rollout(model, s, solver, dt, steps)  # noqa: E731
-            t_c, t_run, compiled = compile_and_time(fn, state, repeats=args.repeats)
+            rec, fin = {}, {}
+            t_c, t_run, compiled = compile_and_time(fn, state, repeats=args.repeats, stats=rec)
             _, tr = compiled(state)
             per_step = t_run / steps
             bare = lambda s, model=model, steps=steps: rollout(model, s, solver, dt, steps, save_every=steps)[0]  # noqa: E731
-            _, t_bare, _ = compile_and_time(bare, state, repeats=args.repeats)
+            _, t_bare, _ = compile_and_time(bare, state, repeats=args.repeats, stats=fin)
             row = {"case": name, "dtype": np.dtype(dtype).name, "particles": model.n_particles,
                    "constraints": model.n_constraints, "colours": model.topology.n_colours,
                    "iterations": iterations, "dt": dt, "steps": steps, "compile_s": t_c,
                    "median_s_per_step": per_step, "median_s_per_step_final_state_only": t_bare / steps,
                    "ns_per_constraint_iteration": per_step / (model.n_constraints * iterations) * 1e9,
+                   "min_s_per_step": rec["min_s"] / steps,
+                   "min_s_per_step_final_state_only": fin["min_s"] / steps,
+                   "host_steal": rec["steal"], "host_steal_final_state_only": fin["steal"],
                    "max_violation": float(nan_max(violation(model, tr.x))),
                    "energy_drift": float(energy_drift(model, state, tr))}
             if name == "double_pendulum":
@@ -153,16 +192,20 @@ def bench(args) -> int:
             err = row.get("position_error_at_1s")
             print(f"{name:18s} {row['dtype']:7s} {t_c:9.2f} {per_step * 1e6:10.3f} {t_bare / steps * 1e6:10.3f} "
                   f"{row['ns_per_constraint_iteration']:9.2f} {row['max_violation']:9.2e} "
-                  f"{row['energy_drift']:+9.2e} {'' if err is None else f'{err:9.2e}'}")
+                  f"{row['energy_drift']:+9.2e} {'' if err is None else f'{err:9.2e}':9s} {_pct(rec['steal'])}")
     print("us/step: median of repeated compiled rollouts recording the trajectory every step; no record: the same "
           "rollout keeping only the final state (save_every=steps); compile time measured apart (lower + "
-          "compile); ns/c-iter from us/step; pos err: bob positions at t = 1 s against the stated reference.")
+          "compile); ns/c-iter from us/step; pos err: bob positions at t = 1 s against the stated reference; "
+          "steal: share of this machine's CPU time the hypervisor gave to other guests while the recording "
+          "rollouts ran (/proc/stat). Above a few percent, timings on a shared host are inflated.")
     out = {"machine": info, "solver": f"PGS(iterations={iterations}, beta=0.2)", "results": results}
     out["xpbd_cloth"] = _xpbd_cloth(args.small, args.repeats)
     if jax.config.jax_enable_x64:
         out["double_pendulum_best"] = _best_double_pendulum(args.repeats)
     if not args.no_batched:
         out["batched"] = batched(args.small, args.repeats)
+    out["host_steal"] = steal_fraction(start, _cpu_jiffies())
+    print(f"\nhost steal over the whole bench: {_pct(out['host_steal']).strip()} of this machine's CPU time")
     if args.out:
         with open(args.out, "w") as f:
             json.dump(out, f, indent=2)
@@ -183,16 +226,22 @@ def _xpbd_cloth(small: bool, repeats: int) -> dict:
     sweeps = model.n_constraints * solver.iterations * solver.substeps
     for key, every in (("final_state_only", steps), ("recording", 1)):
         fn = lambda s, every=every: rollout(model, s, solver, dt, steps, save_every=every)  # noqa: E731
-        t_c, t_run, compiled = compile_and_time(fn, state, repeats=repeats)
+        stats = {}
+        t_c, t_run, compiled = compile_and_time(fn, state, repeats=repeats, stats=stats)
         row[f"median_s_per_step_{key}"] = t_run / steps
         row[f"ns_per_constraint_iteration_{key}"] = t_run / steps / sweeps * 1e9
+        row[f"min_ns_per_constraint_iteration_{key}"] = stats["min_s"] / steps / sweeps * 1e9
+        row[f"host_steal_{key}"] = stats["steal"]
         if key == "recording":
             row["compile_s"] = t_c
             row["max_violation"] = float(nan_max(violation(model, compiled(state)[1].x)))
     print(f"\n{row['case']}, float32, {row['solver']}: {row['ns_per_constraint_iteration_recording']:.2f} ns per "
           f"constraint-iteration recording every step, {row['ns_per_constraint_iteration_final_state_only']:.2f} "
           f"final state only ({row['median_s_per_step_recording'] * 1e6:.0f} us/step); max violation "
-          f"{row['max_violation']:.2e}; compile {row['compile_s']:.2f} s")
+          f"{row['max_violation']:.2e}; compile {row['compile_s']:.2f} s; fastest runs "
+          f"{row['min_ns_per_constraint_iteration_recording']:.2f} / "
+          f"{row['min_ns_per_constraint_iteration_final_state_only']:.2f} ns; host steal "
+          f"{_pct(row['host_steal_recording']).strip()} / {_pct(row['host_steal_final_state_only']).strip()}")
     return row
 
 
@@ -210,14 +259,17 @@ def _best_double_pendulum(repeats: int) -> dict:
     for key, every in (("final_state_only", steps), ("recording", 1)):
         # the recording variant returns the trajectory too (otherwise XLA drops the recording as dead code)
         fn = lambda s, every=every: rollout(model, s, solver, dt, steps, save_every=every)  # noqa: E731
-        t_c, t_run, compiled = compile_and_time(fn, state, repeats=max(repeats, 11))
+        stats = {}
+        t_c, t_run, compiled = compile_and_time(fn, state, repeats=max(repeats, 11), stats=stats)
         row[f"ms_per_sim_s_{key}"] = t_run / (steps * dt) * 1e3
+        row[f"host_steal_{key}"] = stats["steal"]
         if key == "final_state_only":
             row["compile_s"] = t_c
             row["position_error_at_1s"] = float(np.max(np.abs(np.asarray(compiled(state)[0].x[1:]) - ref)))
     print(f"\ndouble pendulum (0.5, 0.5), float64, {row['solver']} at dt = 1/{steps}: position error at 1 s "
           f"{row['position_error_at_1s']:.2e} m for {row['ms_per_sim_s_final_state_only']:.2f} ms per simulated "
-          f"second ({row['ms_per_sim_s_recording']:.2f} ms recording every step; compile {row['compile_s']:.2f} s)")
+          f"second ({row['ms_per_sim_s_recording']:.2f} ms recording every step; compile {row['compile_s']:.2f} s; "
+          f"host steal {_pct(row['host_steal_final_state_only']).strip()})")
     return row
 
 

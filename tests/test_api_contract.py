@@ -64,12 +64,16 @@ def test_bench_writes_json(tmp_path, capsys):
     assert {r["case"] for r in rows} == {"double_pendulum", "chain_20", "cloth_8x8"}
     for r in rows:
         assert r["median_s_per_step"] > 0 and r["compile_s"] > 0 and np.isfinite(r["max_violation"])
+        assert 0 < r["min_s_per_step"] <= r["median_s_per_step"]
+        assert r["host_steal"] is None or 0 <= r["host_steal"] <= 1
     dp = [r for r in rows if r["case"] == "double_pendulum"][0]
     assert dp["position_error_at_1s"] < 0.05
     assert "cpu" in data["machine"]
     xp = data["xpbd_cloth"]
     assert xp["case"] == "cloth_8x8" and xp["ns_per_constraint_iteration_recording"] > 0
     assert 0 < xp["max_violation"] < 0.05
+    assert 0 < xp["min_ns_per_constraint_iteration_recording"] <= xp["ns_per_constraint_iteration_recording"]
+    assert data["host_steal"] is None or 0 <= data["host_steal"] <= 1
     assert {r["batch"] for r in data["batched"]} >= {1, 64}
     assert {r["mode"] for r in data["batched"]} == {"vmap", "chunks of 32"}   # 64 = two chunks of 32
     assert all(r["particle_steps_per_s"] > 0 for r in data["batched"])
@@ -81,3 +85,17 @@ def test_bench_best_double_pendulum_row():
     row = _best_double_pendulum(1)
     assert row["dt"] == 1 / 260 and row["position_error_at_1s"] < 1e-5
     assert row["ms_per_sim_s_final_state_only"] > 0 and row["ms_per_sim_s_recording"] > 0
+
+
+def test_steal_fraction():
+    """The bench's host-steal reading: the steal share of the CPU ticks between two /proc/stat readings, and
+    None when a reading is missing or spans too few ticks to mean anything."""
+    from jaxcon._cli import _cpu_jiffies, steal_fraction
+    assert steal_fraction((10, 1000), (40, 1200)) == 30 / 200
+    assert steal_fraction((10, 1000), (10, 1100)) == 0.0
+    assert steal_fraction((10, 1000), (12, 1010)) is None        # 10 ticks: too short to tell
+    assert steal_fraction(None, (12, 1200)) is None
+    now = _cpu_jiffies()
+    if now is not None:                                          # Linux
+        steal, total = now
+        assert 0 <= steal <= total
