@@ -34,7 +34,7 @@ def machine() -> dict:
 def _cpu_jiffies():
     """(steal, total) CPU time of this machine in clock ticks, summed over its CPUs (/proc/stat), or None where
     the file is missing. Steal is time a virtual machine's CPUs were ready to run but the hypervisor ran
-    another guest; on a shared host it is what makes the same benchmark vary between runs."""
+    another guest: one sign of a loaded host (contention for shared caches and memory does not show in it)."""
     try:
         with open("/proc/stat") as f:
             fields = f.readline().split()
@@ -197,7 +197,7 @@ def bench(args) -> int:
           "rollout keeping only the final state (save_every=steps); compile time measured apart (lower + "
           "compile); ns/c-iter from us/step; pos err: bob positions at t = 1 s against the stated reference; "
           "steal: share of this machine's CPU time the hypervisor gave to other guests while the recording "
-          "rollouts ran (/proc/stat). Above a few percent, timings on a shared host are inflated.")
+          "rollouts ran (/proc/stat), one sign of a loaded host; fastest runs are in the JSON.")
     out = {"machine": info, "solver": f"PGS(iterations={iterations}, beta=0.2)", "results": results}
     out["xpbd_cloth"] = _xpbd_cloth(args.small, args.repeats)
     if jax.config.jax_enable_x64:
