@@ -50,13 +50,22 @@ def constraints_in(topo: Topology, a):
     return tuple(a[..., b.offset: b.offset + b.size].reshape(lead + b.shape) for b in topo.blocks)
 
 
-def constraints_out(topo: Topology, blocks):
-    """Inverse of `constraints_in`."""
+def constraints_concat(topo: Topology, blocks):
+    """Tuple of [..., *block.shape] -> one [..., m] array, still in block order (see `constraints_out`)."""
     if not blocks:
         raise ValueError("model has no constraints")
     flat = [x.reshape(x.shape[: x.ndim - len(b.shape)] + (b.size,)) for x, b in zip(blocks, topo.blocks)]
-    a = jnp.concatenate(flat, axis=-1)
+    return jnp.concatenate(flat, axis=-1)
+
+
+def constraints_unpermute(topo: Topology, a):
+    """[..., m] in block order (`constraints_concat`) -> the user's constraint order."""
     return jnp.take(a, topo.inv_perm, axis=-1)
+
+
+def constraints_out(topo: Topology, blocks):
+    """Inverse of `constraints_in`."""
+    return constraints_unpermute(topo, constraints_concat(topo, blocks))
 
 
 def _split_box(box, view):
