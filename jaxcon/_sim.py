@@ -62,6 +62,7 @@ def step(model: Model, state: State, solver: Solver, dt) -> State:
 def _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint=None):
     sys, x, v, lam = _enter(model, state)
     dt = jnp.asarray(dt, x.dtype)
+    t = model.topology
 
     def one(_, carry):
         return solver._step(sys, *carry, dt)
@@ -81,7 +82,6 @@ def _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint=None):
     def records(carry, n):
         return lax.scan(body, carry, length=n)
 
-    t = model.topology
     carry = (x, v, lam)
     n_rec = steps // save_every
     if checkpoint is None:

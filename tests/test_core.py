@@ -217,6 +217,21 @@ def test_step_equals_one_rollout_step_and_save_every():
     np.testing.assert_allclose(np.asarray(sparse.x), np.asarray(tr.x[1::2]), atol=1e-14)
 
 
+def test_recorded_impulses_are_in_user_order_on_a_cloth():
+    """rollout records each step's impulses flat in the solver's block order and reorders them once at the end;
+    on a cloth (8 colour blocks, a non-trivial permutation) every recorded row must equal jc.step's lam."""
+    model, state = jc.scenes.cloth(6, 5, dtype=np.float64)
+    assert model.topology.n_colours > 2
+    for solver in (jc.PGS(), jc.XPBD(substeps=2)):
+        final, tr = jc.rollout(model, state, solver, 1 / 120, 3)
+        s = state
+        for k in range(3):
+            s = jc.step(model, s, solver, 1 / 120)
+            np.testing.assert_allclose(np.asarray(tr.lam[k]), np.asarray(s.lam), rtol=0, atol=1e-13)
+        np.testing.assert_array_equal(np.asarray(tr.lam[-1]), np.asarray(final.lam))
+        assert np.abs(np.asarray(final.lam)).max() > 0
+
+
 def test_rollout_compiles_once_for_new_parameter_values():
     model, state = jc.scenes.chain(n_links=3)
     jc.rollout(model, state, jc.PGS(beta=0.2), 1 / 240, 7)
