@@ -299,6 +299,16 @@ def batched(small: bool, repeats: int) -> list:
     return rows
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {value}")
+    return value
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m jaxcon", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -306,7 +316,8 @@ def main(argv=None) -> int:
     d.add_argument("--small", action="store_true", help="reduced sizes (for tests)")
     b = sub.add_parser("bench", help="time rollouts (median after compilation) and report their error")
     b.add_argument("--small", action="store_true", help="reduced sizes (for tests)")
-    b.add_argument("--repeats", type=int, default=7)
+    b.add_argument("--repeats", type=_positive_int, default=7,
+                   help="timed runs per measurement after compilation; the median is reported (default 7)")
     b.add_argument("--out", default="bench.json", help="JSON output path ('' for none)")
     b.add_argument("--f32-only", action="store_true", help="skip float64")
     b.add_argument("--no-batched", action="store_true", help="skip the batched (vmap) throughput section")
@@ -314,6 +325,10 @@ def main(argv=None) -> int:
                    help="sweep every solver over iterations, substeps and dt; error vs cost (JSON, CSV, plots)")
     b.add_argument("--out-dir", default="speed_vs_error", help="output folder of --speed-vs-error")
     args = p.parse_args(argv)
+    if args.cmd == "bench" and args.out:
+        folder = os.path.dirname(os.path.abspath(args.out))
+        if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
+            p.error(f"--out {args.out}: folder {folder} does not exist or is not writable")
     if args.cmd == "bench" and args.speed_vs_error:
         from ._speed_vs_error import run
         run(small=args.small, out_dir=args.out_dir)

@@ -56,8 +56,21 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
         raise TypeError(f"diagnose: `traj` must be a jaxcon Trajectory, got {type(traj).__name__}")
     if state0 is not None and not isinstance(state0, State):
         raise TypeError(f"diagnose: `state0` must be a jaxcon State or None, got {type(state0).__name__}")
+    t = model.topology
     if jnp.ndim(traj.x) != 3:
         raise ValueError(f"diagnose: `traj.x` must be [steps, n, dim] (vmap diagnose over batches), got shape {jnp.shape(traj.x)}")
+    steps = jnp.shape(traj.x)[0]
+    for name, want in (("x", (steps, t.n, t.dim)), ("v", (steps, t.n, t.dim)), ("lam", (steps, t.m))):
+        got = tuple(jnp.shape(getattr(traj, name)))
+        if got != want:
+            raise ValueError(f"diagnose: `traj.{name}` has shape {got}, but this model ({t.n} particles, dim {t.dim}, "
+                             f"{t.m} constraints) and {steps} recorded steps need {want}: is it the model that "
+                             "made the trajectory?")
+    if state0 is not None:
+        for name, want in (("x", (t.n, t.dim)), ("v", (t.n, t.dim))):
+            got = tuple(jnp.shape(getattr(state0, name)))
+            if got != want:
+                raise ValueError(f"diagnose: `state0.{name}` has shape {got}, this model needs {want}")
     x, v = traj.x, traj.v
     viol = nan_max(violation(model, x), axis=-1)
     e = energy(model, x, v)

@@ -25,11 +25,13 @@ def _masses(model: Model):
 
 def kinetic_energy(model: Model, v):
     """Kinetic energy (J) of the free particles. v: [..., n, dim]."""
+    check_particles("kinetic_energy", model, "v", v)
     return 0.5 * jnp.sum(_masses(model) * jnp.sum(v * v, -1), -1)
 
 
 def energy(model: Model, x, v):
     """Total mechanical energy (J) of the free particles: kinetic + gravitational. x, v: [..., n, dim]."""
+    check_particles("energy", model, "x", x)
     pe = -jnp.sum(_masses(model) * jnp.sum(x * model.gravity, -1), -1)
     return kinetic_energy(model, v) + pe
 
@@ -43,9 +45,20 @@ def energy_drift(model: Model, state, traj):
     return (e1 - e0) / jnp.maximum(ke, jnp.finfo(ke.dtype).tiny)
 
 
+def check_particles(owner: str, model: Model, name: str, a) -> None:
+    """Raise unless `a` is [..., n, dim] for this model (before any computation: a wrong shape would otherwise
+    index or broadcast into a wrong answer)."""
+    t = model.topology
+    shape = tuple(jnp.shape(a))
+    if len(shape) < 2 or shape[-2:] != (t.n, t.dim):
+        raise ValueError(f"{owner}: `{name}` must have shape [..., {t.n}, {t.dim}] (particles, dim) for this model, "
+                         f"got {shape}")
+
+
 def violation(model: Model, x):
     """Relative constraint violation [..., m]: |d - L| / L for rods, max(d - L, 0) / L for ropes (a slack rope
-    is not violated). Where L = 0 the absolute violation is returned."""
+    is not violated). Where L = 0 the absolute violation is returned. x: [..., n, dim]."""
+    check_particles("violation", model, "x", x)
     t = model.topology
     d, _ = safe_norm(x[..., t.j, :] - x[..., t.i, :], axis=-1)
     err = d - model.rest_length

@@ -3,9 +3,11 @@ from __future__ import annotations
 
 from typing import Any, Optional, Sequence
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _layout
 from ._pytree import concrete, pytree_dataclass, static_field
 from ._topology import Topology, check_colouring, greedy_colouring
 
@@ -122,6 +124,13 @@ def check_state(owner: str, model: Model, state: State) -> None:
     t = model.topology
     if not isinstance(state, State):
         raise TypeError(f"{owner}: `state` must be a jaxcon State, got {type(state).__name__}")
+    for name in ("x", "v", "lam"):
+        a = getattr(state, name)
+        if not hasattr(a, "dtype"):
+            raise TypeError(f"{owner}: `state.{name}` must be an array (jax or NumPy), got {type(a).__name__}; "
+                            "make states with jc.build or a scene, or wrap values in jnp.asarray")
+        if not jnp.issubdtype(jnp.result_type(a), jnp.floating):
+            raise TypeError(f"{owner}: `state.{name}` must hold floating-point numbers, got dtype {jnp.result_type(a)}")
     _check_shape(owner, "state.x", state.x, (t.n, t.dim))
     _check_shape(owner, "state.v", state.v, (t.n, t.dim))
     _check_shape(owner, "state.lam", state.lam, (t.m,))
@@ -129,15 +138,76 @@ def check_state(owner: str, model: Model, state: State) -> None:
         _check_values(owner, f"state.{name}", getattr(state, name))
 
 
-def _float_dtype(a) -> Any:
-    dt = jnp.asarray(a).dtype
-    return dt if jnp.issubdtype(dt, jnp.floating) else jnp.result_type(float)
+def default_float() -> np.dtype:
+    """JAX's default float dtype: float64 when `jax_enable_x64` is on, float32 otherwise."""
+    return np.dtype(jnp.result_type(float))
+
+
+def resolve_dtype(owner: str, dtype, *inputs) -> np.dtype:
+    """The float dtype an array-building call uses: `dtype` when given (it must be a floating dtype), else the
+    promoted dtype of the floating-point arrays among `inputs` (so dtypes follow the inputs), else JAX's
+    default float dtype. The result is canonical for the current x64 setting."""
+    if dtype is not None:
+        try:
+            d = np.dtype(dtype)
+        except TypeError:
+            raise TypeError(f"{owner}: `dtype` must be a floating-point dtype, got {dtype!r}") from None
+        if not jnp.issubdtype(d, jnp.floating):
+            raise TypeError(f"{owner}: `dtype` must be a floating-point dtype (float32, float64), got {d}")
+        return np.dtype(jax.dtypes.canonicalize_dtype(d))
+    floats = [jnp.result_type(a) for a in inputs
+              if hasattr(a, "dtype") and jnp.issubdtype(jnp.result_type(a), jnp.floating)]
+    return np.dtype(jax.dtypes.canonicalize_dtype(jnp.result_type(*floats) if floats else default_float()))
+
+
+def check_real(owner: str, name: str, value) -> None:
+    """Refuse values that are not real numbers (strings, complex, bool, objects) by their dtype; works on tracers."""
+    try:
+        dt = jnp.result_type(value) if hasattr(value, "dtype") else np.asarray(value).dtype
+    except (TypeError, ValueError):
+        raise TypeError(f"{owner}: `{name}` must be real numbers, got {type(value).__name__}") from None
+    if dt.kind not in "iuf" and not jnp.issubdtype(dt, jnp.floating):
+        what = {"c": "complex", "b": "bool", "U": "str", "S": "bytes", "O": "object"}.get(dt.kind, str(dt))
+        raise TypeError(f"{owner}: `{name}` must be real numbers, got {what} values (dtype {dt})")
+
+
+def _fixed_mask(fixed, n: int) -> np.ndarray:
+    """`fixed` as a bool mask [n]: None, integer indices, or a boolean mask of length n."""
+    if fixed is None:
+        return np.zeros(n, bool)
+    try:
+        a = np.asarray(fixed)
+    except ValueError:
+        raise ValueError("build: `fixed` must be a list of particle indices or a boolean mask of length n") from None
+    if a.size == 0:
+        return np.zeros(n, bool)
+    if a.dtype.kind == "b":
+        if a.shape != (n,):
+            raise ValueError(f"build: a boolean `fixed` is a mask and must have shape ({n},) (one entry per "
+                             f"particle), got {a.shape}")
+        return a.copy()
+    if a.dtype.kind == "f" and np.all(np.isfinite(a)) and np.all(a == np.round(a)):
+        a = a.astype(np.int64)
+    if a.dtype.kind not in "iu":
+        raise ValueError(f"build: `fixed` must hold integer particle indices (or be a boolean mask of length {n}), "
+                         f"got {fixed!r}")
+    idx = a.astype(np.int64).reshape(-1)
+    bad = (idx < 0) | (idx >= n)
+    if bad.any():
+        raise ValueError(f"build: `fixed` index {int(idx[bad][0])} is out of range (there are {n} particles)")
+    mask = np.zeros(n, bool)
+    mask[idx] = True
+    return mask
 
 
 def _pairs(name: str, pairs, n: int) -> np.ndarray:
     if pairs is None:
         return np.zeros((0, 2), np.int64)
-    a = np.asarray(pairs)
+    try:
+        a = np.asarray(pairs)
+    except ValueError:
+        raise ValueError(f"build: `{name}` must be a list of (i, j) particle index pairs; some entries are not "
+                         "pairs (ragged list)") from None
     if a.size == 0:
         return np.zeros((0, 2), np.int64)
     if a.ndim != 2 or a.shape[1] != 2:
@@ -167,64 +237,57 @@ def build(
     masses,
     rods: Optional[Sequence] = None,
     ropes: Optional[Sequence] = None,
-    fixed: Optional[Sequence[int]] = None,
+    fixed=None,
     rest_lengths=None,
     velocities=None,
     gravity=None,
     *,
     colouring=None,
     grid_shape: Optional[tuple] = None,
+    dtype=None,
 ):
     """Build a model and its initial state from arrays.
 
+    Topology (`rods`, `ropes`, `fixed`, `colouring`, `grid_shape`) is static and must be concrete. The physical
+    values (`positions`, `masses`, `rest_lengths`, `velocities`, `gravity`) may be traced: `build` works inside
+    `jax.grad`, `jax.jit` and `jax.vmap`, and gradients flow through it. Values known now are checked; traced
+    ones cannot be, so a traced negative mass or scalar gravity is not caught.
+
     Args:
-      positions: [n, dim] initial positions (dim 2 or 3). Their dtype sets the model's float dtype.
-      masses: [n] (or a scalar) masses in kg; must be finite and > 0 except for fixed particles.
+      positions: [n, dim] initial positions (m), dim 2 or 3.
+      masses: [n] (or a scalar) masses in kg; finite and > 0 for particles that are not fixed, and such that
+        1 / mass is a normal number in the model's dtype (a mass of 1e39 in float32 would otherwise become an
+        inverse mass of 0, i.e. a fixed particle). The masses of fixed particles are ignored.
       rods: (i, j) pairs joined by bilateral distance constraints (push or pull).
       ropes: (i, j) pairs joined by unilateral distance constraints (pull only, lambda >= 0).
-      fixed: indices of fixed particles (inverse mass 0).
-      rest_lengths: [n_rods + n_ropes] rest lengths (rods first, then ropes); None: initial distances.
-      velocities: [n, dim] initial velocities; None: zero.
-      gravity: [dim] vector or a scalar magnitude along the negative last axis; None: 9.81 m/s^2.
+      fixed: the fixed particles (inverse mass 0): a list of indices, or a boolean mask of shape [n].
+      rest_lengths: [n_rods + n_ropes] rest lengths (m, rods first, then ropes); None: initial distances.
+      velocities: [n, dim] initial velocities (m/s); None: zero.
+      gravity: [dim] acceleration vector (m/s^2), or a scalar magnitude >= 0 pointing along the negative last
+        axis; None: 9.81 m/s^2 along the negative last axis.
       colouring: optional [m] colour per constraint; default greedy in the given order. It is checked:
         constraints of one colour may not share a particle.
       grid_shape: optional shape whose product is n, used as the internal particle layout (lets regular
         structures solve colours with strided slices instead of gathers). When a colour steps by 2 along its
         last axis and that axis is even, the layout stores that axis as even entries then odd ones; states
         stay in your particle order either way.
+      dtype: float dtype of the model and state. None: the dtype of `positions` when it is a floating-point
+        array, else JAX's default float dtype (float64 under `jax_enable_x64`, float32 otherwise).
 
     Returns:
       (model, state).
     """
-    x = jnp.asarray(positions)
-    dtype = _float_dtype(x)
-    x = x.astype(dtype)
+    check_real("build", "positions", positions)
+    dtype = resolve_dtype("build", dtype, positions)
+    x = jnp.asarray(positions).astype(dtype)
     if x.ndim != 2 or x.shape[1] not in (2, 3):
         raise ValueError(f"build: `positions` must have shape [n, 2] or [n, 3], got {tuple(x.shape)}")
     n, dim = x.shape
     if n < 1:
         raise ValueError("build: `positions` must hold at least one particle")
     _check_values("build", "positions", x)
-
-    fixed_idx = np.zeros(0, np.int64) if fixed is None else np.asarray(fixed, np.int64).reshape(-1)
-    if ((fixed_idx < 0) | (fixed_idx >= n)).any():
-        bad = fixed_idx[(fixed_idx < 0) | (fixed_idx >= n)][0]
-        raise ValueError(f"build: `fixed` index {int(bad)} is out of range (there are {n} particles)")
-    is_fixed = np.zeros(n, bool)
-    is_fixed[fixed_idx] = True
-
-    m_arr = np.asarray(concrete(masses) if concrete(masses) is not None else masses)
-    if np.ndim(m_arr) == 0:
-        m_arr = np.full(n, float(m_arr))
-    _check_shape("build", "masses", m_arr, (n,))
-    if m_arr.dtype.kind not in "biuf":
-        raise TypeError(f"build: `masses` must be real numbers, got dtype {m_arr.dtype}")
-    bad = ~is_fixed & ~(np.isfinite(m_arr) & (m_arr > 0))
-    if bad.any():
-        p = int(np.argmax(bad))
-        raise ValueError(f"build: `masses` must be finite and > 0 for particles that are not in `fixed`; "
-                         f"particle {p} has mass {m_arr[p]}")
-    inv_mass = np.where(is_fixed, 0.0, 1.0 / np.where(is_fixed, 1.0, m_arr))
+    is_fixed = _fixed_mask(fixed, n)
+    inv_mass = _inverse_masses(masses, is_fixed, dtype)
 
     rod_pairs = _pairs("rods", rods, n)
     rope_pairs = _pairs("ropes", ropes, n)
@@ -236,47 +299,99 @@ def build(
     i, j = pairs[:, 0], pairs[:, 1]
 
     if rest_lengths is None:
-        xn = np.asarray(x, np.float64)
-        rest = np.linalg.norm(xn[j] - xn[i], axis=-1)
+        xc = concrete(positions)
+        if xc is not None:      # known now: the distances in float64, rounded once
+            xc = np.asarray(xc, np.float64)
+            rest = jnp.asarray(np.linalg.norm(xc[j] - xc[i], axis=-1), dtype)
+        else:
+            rest = _layout.safe_norm(x[j] - x[i], axis=-1)[0]
     else:
-        rest = rest_lengths
-        _check_shape("build", "rest_lengths", rest, (m,))
-        _check_values("build", "rest_lengths", rest, nonneg=True)
-    rest = jnp.asarray(rest, dtype)
+        check_real("build", "rest_lengths", rest_lengths)
+        _check_shape("build", "rest_lengths", rest_lengths, (m,))
+        _check_values("build", "rest_lengths", rest_lengths, nonneg=True)
+        rest = jnp.asarray(rest_lengths).astype(dtype)
 
     if velocities is None:
         v = jnp.zeros_like(x)
     else:
-        v = jnp.asarray(velocities, dtype)
-        _check_shape("build", "velocities", v, (n, dim))
-        _check_values("build", "velocities", v)
+        check_real("build", "velocities", velocities)
+        _check_shape("build", "velocities", velocities, (n, dim))
+        _check_values("build", "velocities", velocities)
+        v = jnp.asarray(velocities).astype(dtype)
 
-    if gravity is None:
-        g = jnp.zeros(dim, dtype).at[-1].set(-9.81)
-    elif np.ndim(gravity) == 0:
-        _check_values("build", "gravity", gravity)
-        g = jnp.zeros(dim, dtype).at[-1].set(-jnp.asarray(gravity, dtype))
-    else:
-        _check_shape("build", "gravity", gravity, (dim,))
-        _check_values("build", "gravity", gravity)
-        g = jnp.asarray(gravity, dtype)
-
-    if colouring is None:
-        colour = greedy_colouring(i, j, n)
-    else:
-        colour = np.asarray(colouring)
-        _check_shape("build", "colouring", colour, (m,))
-        if colour.dtype.kind not in "iu" or (colour < 0).any():
-            raise ValueError("build: `colouring` must hold non-negative integers")
-        check_colouring(i, j, colour, n)
-    if grid_shape is None:
-        view = (n,)
-    else:
-        view = tuple(int(s) for s in grid_shape)
-        if int(np.prod(view)) != n or any(s < 1 for s in view):
-            raise ValueError(f"build: `grid_shape` {view} must multiply to the number of particles {n}")
-
-    topo = Topology(n, dim, i, j, is_rope, colour, view)
-    model = Model(jnp.asarray(inv_mass, dtype), rest, g, topo)
+    g = _gravity("build", gravity, dim, dtype)
+    topo = Topology(n, dim, i, j, is_rope, _colouring(colouring, i, j, n), _view(grid_shape, n))
+    model = Model(inv_mass, rest, g, topo)
     state = State(x, v, jnp.zeros(m, dtype))
     return model, state
+
+
+def _inverse_masses(masses, is_fixed, dtype):
+    """[n] inverse masses in `dtype`: 0 for fixed particles, 1 / mass otherwise (traced masses welcome)."""
+    n = len(is_fixed)
+    check_real("build", "masses", masses)
+    if np.ndim(masses) not in (0, 1):
+        raise ValueError(f"build: `masses` must be a scalar or have shape ({n},), got {np.shape(masses)}")
+    m = jnp.broadcast_to(jnp.asarray(masses).astype(dtype), (n,)) if np.ndim(masses) == 0 else masses
+    _check_shape("build", "masses", m, (n,))
+    m = jnp.asarray(m).astype(dtype)
+    mc = concrete(masses)
+    if mc is not None:
+        mc = np.broadcast_to(np.asarray(mc, np.float64), (n,))
+        with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+            inv = 1 / mc
+            stored = inv.astype(dtype)
+            bad = ~is_fixed & ~(np.isfinite(mc) & (mc > 0))
+            tiny = np.finfo(dtype).tiny
+            unrepresentable = ~is_fixed & ~bad & ~(np.isfinite(stored) & (stored >= tiny) & np.isfinite(mc.astype(dtype)))
+        if bad.any():
+            p = int(np.argmax(bad))
+            raise ValueError(f"build: `masses` must be finite and > 0 for particles that are not in `fixed`; "
+                             f"particle {p} has mass {mc[p]}")
+        if unrepresentable.any():
+            p = int(np.argmax(unrepresentable))
+            raise ValueError(
+                f"build: `masses`: particle {p} has mass {mc[p]:g} kg, whose inverse is not a normal {np.dtype(dtype)} "
+                f"number (it would be stored as {stored[p]:g}, and an inverse mass of 0 fixes a particle); use masses "
+                f"between {1 / np.finfo(dtype).max:.3g} and {1 / tiny:.3g} kg, a wider dtype, or `fixed`")
+        return jnp.asarray(np.where(is_fixed, 0.0, inv), dtype)     # known now: 1 / mass in float64, rounded once
+    safe = jnp.where(is_fixed, jnp.ones((), dtype), m)
+    return jnp.where(is_fixed, jnp.zeros((), dtype), 1 / safe)
+
+
+def _gravity(owner, gravity, dim, dtype):
+    """[dim] gravity vector from None, a scalar magnitude >= 0 (downward along the last axis) or a vector."""
+    if gravity is None:
+        return jnp.zeros(dim, dtype).at[-1].set(-9.81)
+    check_real(owner, "gravity", gravity)
+    if np.ndim(gravity) == 0:
+        _check_values(owner, "gravity", gravity)
+        g = concrete(gravity)
+        if g is not None and float(g) < 0:
+            raise ValueError(
+                f"{owner}: a scalar `gravity` is a magnitude (m/s^2) pointing along the negative last axis and must "
+                f"be >= 0, got {float(g)}; for gravity along another direction pass a [{dim}] vector")
+        return jnp.zeros(dim, dtype).at[-1].set(-jnp.asarray(gravity).astype(dtype))
+    _check_shape(owner, "gravity", gravity, (dim,))
+    _check_values(owner, "gravity", gravity)
+    return jnp.asarray(gravity).astype(dtype)
+
+
+def _colouring(colouring, i, j, n):
+    if colouring is None:
+        return greedy_colouring(i, j, n)
+    colour = np.asarray(colouring)
+    _check_shape("build", "colouring", colour, (len(i),))
+    if colour.dtype.kind not in "iu" or (colour < 0).any():
+        raise ValueError("build: `colouring` must hold non-negative integers")
+    check_colouring(i, j, colour, n)
+    return colour
+
+
+def _view(grid_shape, n):
+    if grid_shape is None:
+        return (n,)
+    view = tuple(int(s) for s in grid_shape)
+    if int(np.prod(view)) != n or any(s < 1 for s in view):
+        raise ValueError(f"build: `grid_shape` {view} must multiply to the number of particles {n}")
+    return view

@@ -1,6 +1,7 @@
 """Penalty (stiff spring) solver: every rod and rope is a damped spring, integrated by symplectic Euler."""
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import jax.numpy as jnp
@@ -8,7 +9,7 @@ import numpy as np
 from jax import lax
 
 from . import _layout as L
-from ._pytree import pytree_dataclass, static_field
+from ._pytree import concrete, pytree_dataclass, static_field
 from ._solver import Solver, _check_int, _check_scalar
 from ._substeps import substepped
 
@@ -60,13 +61,30 @@ class Penalty(Solver):
         omega_bound^2 = stiffness * max over constraints of (w_i deg_i + w_j deg_j) (deg: constraints at the
         particle), a Gershgorin bound on the largest eigenvalue of stiffness J M^-1 J^T. For a single
         spring it is the exact 2 / sqrt(stiffness (w_i + w_j)); for chains it is within a factor sqrt(2) of
-        the true limit. Concrete values only (NumPy)."""
+        the true limit. Concrete values only (NumPy). `rollout` and `step` warn when dt / substeps is above it."""
         t = model.topology
         w = np.asarray(model.inv_mass, np.float64)
         deg = np.bincount(np.concatenate([t.i, t.j]), minlength=t.n)
         bound = float(np.max(w[t.i] * deg[t.i] + w[t.j] * deg[t.j]))
         omega = np.sqrt(float(self.stiffness) * bound)
         return float(2 / omega) if omega > 0 else float("inf")
+
+    def _check_stability(self, owner, model, dt) -> None:
+        """Warn (before tracing, where the values are known) when a substep is above `stability_limit`: the
+        springs will then blow up. A warning, not an error: the limit is a sufficient bound, and an unstable run
+        is something one may want to see."""
+        vals = [concrete(a) for a in (self.stiffness, model.inv_mass, dt)]
+        if any(a is None for a in vals):
+            return
+        h = float(vals[2]) / self.substeps
+        limit = self.stability_limit(model)
+        if h > limit:
+            need = int(np.ceil(float(vals[2]) / limit))
+            warnings.warn(
+                f"{owner}: Penalty substep dt / substeps = {h:.3g} s is above this model's stability limit "
+                f"{limit:.3g} s (stiffness {float(vals[0]):g} N/m): the springs are likely to "
+                f"oscillate and diverge. Use substeps >= {need}, a smaller dt, or a lower stiffness.",
+                RuntimeWarning, stacklevel=4)
 
     def _step(self, sys, x, v, lam, dt):
         topo = sys.topology

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import functools
+import os
 
 import jax
 import jax.numpy as jnp
@@ -9,7 +10,7 @@ import numpy as np
 from jax import lax
 
 from . import _layout as L
-from ._model import Model, State, Trajectory, _check_values, check_state
+from ._model import Model, State, Trajectory, _check_values, check_real, check_state
 from ._pytree import concrete
 from ._solver import Solver, System, _check_int
 
@@ -20,13 +21,34 @@ def _check_call(owner, model, state, solver, dt, steps=None):
     if not isinstance(solver, Solver):
         raise TypeError(f"{owner}: `solver` must be a jaxcon solver (e.g. jc.PGS()), got {type(solver).__name__}")
     check_state(owner, model, state)
+    check_dt(owner, dt, _dtype(state), getattr(solver, "substeps", 1))
+    if steps is not None:
+        _check_int(owner, "steps", steps, 1)
+    warn = getattr(solver, "_check_stability", None)
+    if warn is not None:
+        warn(owner, model, dt)
+
+
+def check_dt(owner, dt, dtype, substeps=1):
+    """`dt` (seconds) must be a real scalar; where known now, finite, > 0, and such that a (sub)step
+    h = dt / substeps keeps h^2 and 1 / h^2 normal, finite numbers in the state's dtype (the solvers use both:
+    a float32 dt of 1e-45 is 0 there, and 1e30 overflows h^2 g). Values only known inside jit are not checked."""
+    check_real(owner, "dt", dt)
     if np.ndim(dt) != 0:
         raise ValueError(f"{owner}: `dt` must be a scalar, got shape {np.shape(dt)}")
     d = concrete(dt)
-    if d is not None and not (np.isfinite(d) and d > 0):
-        raise ValueError(f"{owner}: `dt` must be finite and > 0, got {float(d)}")
-    if steps is not None:
-        _check_int(owner, "steps", steps, 1)
+    if d is None:
+        return
+    d = float(d)
+    if not (np.isfinite(d) and d > 0):
+        raise ValueError(f"{owner}: `dt` must be finite and > 0, got {d}")
+    fi = np.finfo(dtype)
+    h = np.float64(d) / substeps
+    lo, hi = float(np.sqrt(fi.tiny)) * 1e3, float(np.sqrt(fi.max)) * 1e-3
+    if not lo <= h <= hi:
+        per = "" if substeps == 1 else f" / {substeps} substeps"
+        raise ValueError(f"{owner}: `dt` = {d:g} s{per} is outside the range {fi.dtype} can step with "
+                         f"({lo:.1e} to {hi:.1e} s per (sub)step: h^2 and 1 / h^2 must stay normal numbers)")
 
 
 def _dtype(state):
@@ -106,6 +128,48 @@ def _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint=None):
     return final, traj
 
 
+def available_memory() -> tuple[int, str] | None:
+    """(bytes, where) the default device can still allocate: free accelerator memory from its memory stats,
+    else the host's available memory (/proc/meminfo MemAvailable, or free physical pages); None if unknown."""
+    dev = jax.devices()[0]
+    stats = None
+    try:
+        stats = dev.memory_stats()
+    except Exception:  # noqa: BLE001 - backends without memory stats
+        pass
+    if stats and "bytes_limit" in stats:
+        return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0)), f"{dev.platform} device memory"
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024, "host memory"
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"), "host memory"
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_record_memory(owner, model, state, steps, save_every, batch=1):
+    """Refuse, before compiling, a rollout whose recorded trajectory cannot fit in memory. The record holds
+    steps // save_every rows of x, v [n, dim] and lam [m]; putting it back into the user's particle and
+    constraint order makes one more copy, so twice its size must fit. Inside `jax.vmap` the batch size is not
+    known here and is not counted."""
+    rows = steps // save_every
+    itemsize = np.dtype(_dtype(state)).itemsize
+    need = 2 * batch * rows * (2 * model.n_particles * model.dim + model.n_constraints) * itemsize
+    avail = available_memory()
+    if avail is not None and need > avail[0]:
+        gb = 1024 ** 3
+        fit = max(1, int(np.ceil(need / avail[0])))
+        raise ValueError(
+            f"{owner}: recording {batch * rows:,} states needs about {need / gb:.1f} GiB (the trajectory and one "
+            f"reordered copy), more than the {avail[0] / gb:.1f} GiB of {avail[1]} available. Record less: pass "
+            f"`save_every` >= {save_every * fit} (every k-th step is kept), or run fewer `steps` per call.")
+
+
 def rollout(model: Model, state: State, solver: Solver, dt, steps: int, *, save_every: int = 1,
             checkpoint: int | None = None):
     """Run `steps` steps of length `dt` seconds.
@@ -113,6 +177,9 @@ def rollout(model: Model, state: State, solver: Solver, dt, steps: int, *, save_
     Returns (final_state, traj): traj.x, traj.v [steps // save_every, n, dim] and traj.lam
     [steps // save_every, m], recorded after every `save_every`-th step (default: every step; lam is the
     impulse of that step, N s, > 0 pulling). Works under jax.jit, jax.grad and jax.vmap.
+
+    The recorded trajectory's memory is estimated before compiling; a rollout whose record cannot fit in the
+    device's free memory is refused with an error naming `save_every`.
 
     checkpoint: None (default) or a number of steps K, a multiple of `save_every`. The rollout then runs as
       an outer scan over chunks of K steps whose body is wrapped in `jax.checkpoint`, so reverse mode stores
@@ -131,6 +198,7 @@ def rollout(model: Model, state: State, solver: Solver, dt, steps: int, *, save_
                 f"rollout: `checkpoint` ({checkpoint}) must be a multiple of `save_every` ({save_every})")
         if checkpoint >= steps:
             checkpoint = steps
+    check_record_memory("rollout", model, state, steps, save_every)
     return _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint)
 
 
@@ -152,6 +220,8 @@ def batched_rollout(model: Model, states: State, solver: Solver, dt, steps: int,
         raise TypeError(f"batched_rollout: `states` must be a jaxcon State, got {type(states).__name__}")
     if np.ndim(states.x) != 3:
         raise ValueError(f"batched_rollout: `states.x` must have shape [batch, n, dim], got {np.shape(states.x)}")
+    if np.shape(states.x)[0] == 0:
+        raise ValueError("batched_rollout: `states` holds an empty batch (0 initial states)")
     _check_int("batched_rollout", "chunk", chunk, 1)
     _check_int("batched_rollout", "save_every", save_every, 1)
     first = jax.tree.map(lambda a: a[0], states)
@@ -162,4 +232,5 @@ def batched_rollout(model: Model, states: State, solver: Solver, dt, steps: int,
         _check_values("batched_rollout", f"states.{name}", getattr(states, name))
     if steps % save_every:
         raise ValueError(f"batched_rollout: `steps` ({steps}) must be a multiple of `save_every` ({save_every})")
+    check_record_memory("batched_rollout", model, first, steps, save_every, batch=int(np.shape(states.x)[0]))
     return _batched_jit(model, states, solver, dt, steps, save_every, min(chunk, int(np.shape(states.x)[0])))

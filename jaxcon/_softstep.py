@@ -91,7 +91,7 @@ class SoftStep(Solver):
             bias_rate, mass_scale, impulse_scale = soft_coefficients(hertz, zeta, h)
             v = sys.apply_gravity(v, h)
             fr = frames(sys, x)
-            lam = tuple(clamp_ropes(blk, l) * (f.k > 0) for blk, f, l in zip(topo.blocks, fr, lam))
+            lam = tuple(clamp_ropes(blk, l) * (f.k > 0).astype(l.dtype) for blk, f, l in zip(topo.blocks, fr, lam))
             v = apply_impulses(sys, v, fr, lam)
             inv_h = 1 / h
             v, lam = sweep(v, lam, fr, lambda f: bias_rate * f.C, mass_scale, impulse_scale, inv_h)

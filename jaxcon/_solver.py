@@ -9,7 +9,7 @@ import numpy as np
 from jax import lax
 
 from . import _layout as L
-from ._model import Model
+from ._model import Model, check_real
 from ._pytree import concrete, pytree_dataclass, static_field
 from ._substeps import substepped
 from ._topology import Topology
@@ -40,7 +40,7 @@ class System:
 
     def apply_gravity(self, v, h):
         g = self.gravity.reshape((-1,) + (1,) * len(self.topology.view))
-        return v + h * g * (self.w > 0)
+        return v + h * g * (self.w > 0).astype(v.dtype)
 
 
 class Frame(NamedTuple):
@@ -63,7 +63,7 @@ def frames(sys: System, x) -> tuple:
         wi, wj = L.gather_pair(sys.topology, blk, sys.w)
         wi, wj = wi[0], wj[0]
         dist, n = L.safe_norm(xj - xi, axis=0)
-        k = L.safe_reciprocal(wi + wj) * (dist > 0)
+        k = L.safe_reciprocal(wi + wj) * (dist > 0).astype(dist.dtype)
         out.append(Frame(n, dist, dist - rest, wi, wj, k))
     return tuple(out)
 
@@ -105,7 +105,7 @@ def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, factor=1.0, gradient: b
         lam_ws = lax.stop_gradient(lam_ws)
     if not (isinstance(factor, (int, float)) and factor == 1):     # a plain 1 costs nothing
         lam_ws = tuple(l * factor for l in lam_ws)
-    lam = tuple(clamp_ropes(blk, l) * (f.k > 0) for blk, f, l in zip(sys.topology.blocks, fr, lam_ws))
+    lam = tuple(clamp_ropes(blk, l) * (f.k > 0).astype(f.k.dtype) for blk, f, l in zip(sys.topology.blocks, fr, lam_ws))
     return apply_impulses(sys, v, fr, lam), lam
 
 
@@ -123,6 +123,7 @@ def _check_bool(owner, name, value):
 
 def _check_scalar(owner, name, value, lo=None, hi=None, *, positive=False):
     """Scalar, finite, within [lo, hi] and (if `positive`) > 0, for values known now; tracers are skipped."""
+    check_real(owner, name, value)
     if np.ndim(value) != 0:
         raise ValueError(f"{owner}: `{name}` must be a scalar, got shape {np.shape(value)}")
     a = concrete(value)

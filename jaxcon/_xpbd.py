@@ -69,7 +69,7 @@ class XPBD(Solver):
                 # on the 64x64 cloth.
                 dist, inv = L.safe_length(d)
                 dmu = (dist - rest - alpha * mu[c]) * k
-                new = clamp_ropes(blk, mu[c] + dmu * (inv > 0))
+                new = clamp_ropes(blk, mu[c] + dmu * (inv > 0).astype(inv.dtype))
                 q = d * (((new - mu[c]) if blk.has_rope else dmu) * inv)
                 mu[c] = new
                 p = p + L.scatter_pair(topo, blk, wi * q, -wj * q)

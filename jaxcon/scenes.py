@@ -8,62 +8,69 @@ from __future__ import annotations
 
 from typing import Sequence
 
+import jax.numpy as jnp
 import numpy as np
 
-from ._model import build
+from ._model import _check_values, build, check_real, resolve_dtype
+
+# Every physical value of a scene (lengths, masses, angles, size) may be a traced JAX value: scenes build their
+# arrays with jax.numpy, so `jax.grad` of a rollout with respect to an initial angle or a length goes through
+# the scene. Values known now are checked; traced ones cannot be. Counts (n_links, nx, ny) are static.
 
 
-def _positive(owner, name, value):
-    a = np.asarray(value, np.float64)
-    if not np.all(np.isfinite(a)) or np.any(a <= 0):
-        raise ValueError(f"{owner}: `{name}` must be finite and > 0, got {value!r}")
-    return a
+def _value(owner, name, value, shape, *, positive=False):
+    """A scalar or an array of `shape`, real and finite (and > 0 if `positive`) where known now."""
+    check_real(owner, name, value)
+    if np.shape(value) != tuple(shape):
+        want = "a scalar" if shape == () else f"shape {tuple(shape)}"
+        raise ValueError(f"{owner}: `{name}` must be {want}, got shape {np.shape(value)}")
+    _check_values(owner, name, value, positive=positive)
+    return value
 
 
-def _finite(owner, name, value):
-    a = np.asarray(value, np.float64)
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{owner}: `{name}` must be finite, got {value!r}")
-    return a
+def _dtype(owner, dtype, *values):
+    return resolve_dtype(owner, dtype, *values)
 
 
 def _planar_chain(lengths, angles):
-    pts = [np.zeros(2)]
-    for L, a in zip(lengths, angles):
-        pts.append(pts[-1] + L * np.array([np.sin(a), -np.cos(a)]))
-    return np.stack(pts)
+    """[n + 1, 2] positions: the pivot at the origin, then each bob at the previous + L (sin a, -cos a)."""
+    steps = jnp.stack([lengths * jnp.sin(angles), -lengths * jnp.cos(angles)], -1)
+    return jnp.concatenate([jnp.zeros((1, 2), steps.dtype), jnp.cumsum(steps, 0)], 0)
 
 
 def _link_chain(owner, lengths, masses, angles, kind, dtype, gravity):
     if kind not in ("rod", "rope"):
         raise ValueError(f"{owner}: `kind` must be 'rod' or 'rope', got {kind!r}")
-    x = _planar_chain(lengths, angles).astype(dtype)
-    pairs = [(k, k + 1) for k in range(len(lengths))]
+    cast = lambda a: jnp.asarray(a).astype(dtype)  # noqa: E731
+    x = _planar_chain(cast(lengths), cast(angles))
+    pairs = [(k, k + 1) for k in range(len(x) - 1)]
     return build(
-        x, np.concatenate([[1.0], masses]), rods=pairs if kind == "rod" else None,
+        x, jnp.concatenate([jnp.ones(1, dtype), cast(masses)]), rods=pairs if kind == "rod" else None,
         ropes=pairs if kind == "rope" else None, fixed=[0], gravity=gravity,
     )
 
 
 def pendulum(length: float = 1.0, mass: float = 1.0, angle: float = 0.3, *, kind: str = "rod",
              dtype=None, gravity=None):
-    """A single 2-D pendulum: fixed pivot at the origin and one bob on a rod (or rope) of `length` m."""
-    L = _positive("pendulum", "length", length)
-    m = _positive("pendulum", "mass", mass)
-    a = _finite("pendulum", "angle", angle)
-    return _link_chain("pendulum", [L], [m], [a], kind, dtype or np.float32, gravity)
+    """A single 2-D pendulum: fixed pivot at the origin and one bob of `mass` kg on a rod (or rope) of `length`
+    m, at `angle` rad from the downward vertical. dtype: None for JAX's default float dtype (float64 under
+    x64), unless a float array is passed as a value."""
+    _value("pendulum", "length", length, (), positive=True)
+    _value("pendulum", "mass", mass, (), positive=True)
+    _value("pendulum", "angle", angle, ())
+    dtype = _dtype("pendulum", dtype, length, mass, angle)
+    return _link_chain("pendulum", jnp.reshape(jnp.asarray(length), (1,)), jnp.reshape(jnp.asarray(mass), (1,)),
+                       jnp.reshape(jnp.asarray(angle), (1,)), kind, dtype, gravity)
 
 
 def double_pendulum(lengths: Sequence[float] = (1.0, 1.0), masses: Sequence[float] = (1.0, 1.0),
                     angles: Sequence[float] = (1.5708, 1.5708), *, dtype=None, gravity=None):
     """A 2-D double pendulum of two rods; `angles` are absolute angles of each rod from the downward vertical."""
-    L = _positive("double_pendulum", "lengths", lengths)
-    m = _positive("double_pendulum", "masses", masses)
-    a = _finite("double_pendulum", "angles", angles)
-    for name, v in (("lengths", L), ("masses", m), ("angles", a)):
-        if v.shape != (2,):
-            raise ValueError(f"double_pendulum: `{name}` must hold 2 values, got shape {v.shape}")
-    return _link_chain("double_pendulum", L, m, a, "rod", dtype or np.float32, gravity)
+    _value("double_pendulum", "lengths", lengths, (2,), positive=True)
+    _value("double_pendulum", "masses", masses, (2,), positive=True)
+    _value("double_pendulum", "angles", angles, (2,))
+    dtype = _dtype("double_pendulum", dtype, lengths, masses, angles)
+    return _link_chain("double_pendulum", lengths, masses, angles, "rod", dtype, gravity)
 
 
 def chain(n_links: int = 50, length: float = 5.0, mass: float = 0.5, end_mass: float | None = None,
@@ -73,14 +80,18 @@ def chain(n_links: int = 50, length: float = 5.0, mass: float = 0.5, end_mass: f
     `end_mass` instead when given. `kind`: 'rod' (bilateral) or 'rope' (unilateral)."""
     if isinstance(n_links, bool) or not isinstance(n_links, (int, np.integer)) or n_links < 1:
         raise ValueError(f"chain: `n_links` must be an int >= 1, got {n_links!r}")
-    total = float(_positive("chain", "length", length))
-    mtot = float(_positive("chain", "mass", mass))
-    a = float(_finite("chain", "angle", angle))
-    masses = np.full(n_links, mtot / n_links)
+    _value("chain", "length", length, (), positive=True)
+    _value("chain", "mass", mass, (), positive=True)
+    _value("chain", "angle", angle, ())
     if end_mass is not None:
-        masses[-1] = float(_positive("chain", "end_mass", end_mass))
-    return _link_chain("chain", np.full(n_links, total / n_links), masses, np.full(n_links, a), kind,
-                       dtype or np.float32, gravity)
+        _value("chain", "end_mass", end_mass, (), positive=True)
+    dtype = _dtype("chain", dtype, length, mass, angle, *([] if end_mass is None else [end_mass]))
+    masses = jnp.full(n_links, jnp.asarray(mass).astype(dtype) / n_links)
+    if end_mass is not None:
+        masses = masses.at[-1].set(jnp.asarray(end_mass).astype(dtype))
+    lengths = jnp.full(n_links, jnp.asarray(length).astype(dtype) / n_links)
+    return _link_chain("chain", lengths, masses, jnp.full(n_links, jnp.asarray(angle).astype(dtype)), kind,
+                       dtype, gravity)
 
 
 def cloth_edges(nx: int, ny: int):
@@ -120,10 +131,14 @@ def cloth(nx: int = 32, ny: int = 32, size: float = 1.0, mass: float = 1.0, *, d
     for name, v in (("nx", nx), ("ny", ny)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
             raise ValueError(f"cloth: `{name}` must be an int >= 2, got {v!r}")
-    s = float(_positive("cloth", "size", size))
-    mtot = float(_positive("cloth", "mass", mass))
-    gx, gy = np.meshgrid(np.linspace(0, s, nx), np.linspace(0, s, ny))
-    x = np.stack([gx.ravel(), gy.ravel(), np.zeros(nx * ny)], -1).astype(dtype or np.float32)
+    _value("cloth", "size", size, (), positive=True)
+    _value("cloth", "mass", mass, (), positive=True)
+    dtype = _dtype("cloth", dtype, size, mass)
+    s = jnp.asarray(size).astype(dtype)
+    u = jnp.linspace(0, 1, nx, dtype=dtype)[None, :] * jnp.ones((ny, 1), dtype)
+    w = jnp.linspace(0, 1, ny, dtype=dtype)[:, None] * jnp.ones((1, nx), dtype)
+    x = jnp.stack([s * u.ravel(), s * w.ravel(), jnp.zeros(nx * ny, dtype)], -1)
     pairs, colour = cloth_edges(nx, ny)
-    return build(x, np.full(nx * ny, mtot / (nx * ny)), rods=pairs, fixed=[0, nx - 1], gravity=gravity,
-                 colouring=colour, grid_shape=(ny, nx))
+    masses = jnp.full(nx * ny, jnp.asarray(mass).astype(dtype) / (nx * ny))
+    return build(x, masses, rods=pairs, fixed=[0, nx - 1], gravity=gravity, colouring=colour,
+                 grid_shape=(ny, nx))

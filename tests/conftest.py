@@ -1,5 +1,6 @@
-"""Test configuration: float64 is available (x64 on); float32 paths are exercised through explicit dtypes
-(scenes default to float32, `dtype=np.float64` gives float64)."""
+"""Test configuration: x64 on, as physics users run JAX. Scenes and `jc.build` then default to float64 (JAX's
+default float dtype); float32 paths are exercised through explicit `dtype=np.float32`. tests/test_precision.py
+also runs the main calls under strict dtype promotion, and a subprocess with x64 off."""
 import jax
 
 jax.config.update("jax_enable_x64", True)

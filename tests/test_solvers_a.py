@@ -121,7 +121,7 @@ def test_jacobi_converges_to_pgs_fixed_point():
 
 # ---- Penalty stability limit -------------------------------------------------------------------------------
 def test_penalty_above_stability_limit_is_flagged_not_nan():
-    model, state = jc.scenes.double_pendulum(angles=(0.5, 0.5))  # float32
+    model, state = jc.scenes.double_pendulum(angles=(0.5, 0.5), dtype=np.float32)
     solver = jc.Penalty(stiffness=1e6, damping=0.0)
     h_max = solver.stability_limit(model)
     # Gershgorin bound: max(w_i deg_i + w_j deg_j) = 1 * 2 + 1 * 1 for the second rod; the exact limit of

@@ -1,4 +1,6 @@
 """Bad input gets a clear error naming the argument, raised before tracing; tracers pass validation."""
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -32,12 +34,50 @@ X = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
     (dict(gravity=[0.0, -9.81, 0.0]), "gravity"),
     (dict(colouring=[0, 0]), "share particle 1"),
     (dict(grid_shape=(2, 2)), "grid_shape"),
+    (dict(gravity=-9.81), "gravity.*>= 0"),                   # a scalar is a magnitude: -9.81 would point up
+    (dict(gravity=1j), "gravity.*real"),
+    (dict(fixed=[0.7]), "fixed"),                             # was truncated to particle 0
+    (dict(fixed=[True, False]), r"fixed.*shape \(3,\)"),       # a mask of the wrong length
+    (dict(masses=[1.0, 1e39, 1.0], positions=X.astype(np.float32)), "masses.*particle 1.*inverse"),
+    (dict(masses=[1.0, 1e-39, 1.0], positions=X.astype(np.float32)), "masses.*particle 1.*inverse"),
+    (dict(masses=[1.0, "2", 1.0]), "masses.*real"),
+    (dict(positions=X + 1j), "positions.*complex"),           # was cast to real with a warning
+    (dict(positions=X > 0), "positions.*bool"),
+    (dict(rods=[(0, 1), (1, 2, 0)]), "rods.*pairs"),           # ragged
+    (dict(dtype=np.int32), "dtype"),
+    (dict(velocities=np.zeros((3, 2)) + 1j), "velocities.*complex"),
 ])
 def test_build_rejects_bad_input(kwargs, match):
     args = dict(positions=X, masses=[1.0, 1.0, 1.0], rods=[(0, 1), (1, 2)], fixed=[0])
     args.update(kwargs)
     with pytest.raises((ValueError, TypeError), match=match):
         jc.build(**args)
+
+
+def test_fixed_accepts_a_boolean_mask():
+    """A mask fixes the particles where it is True (`fixed=[True, False, False]` used to fix particles 0 and 1,
+    read as indices 1 and 0)."""
+    model, _ = jc.build(X, [1.0, 2.0, 4.0], rods=[(0, 1), (1, 2)], fixed=[True, False, False])
+    np.testing.assert_array_equal(np.asarray(model.inv_mass), [0.0, 0.5, 0.25])
+    model, _ = jc.build(X, [1.0, 2.0, 4.0], rods=[(0, 1), (1, 2)], fixed=np.array([False, False, True]))
+    np.testing.assert_array_equal(np.asarray(model.inv_mass), [1.0, 0.5, 0.0])
+    model, _ = jc.build(X, [1.0, 2.0, 4.0], rods=[(0, 1), (1, 2)], fixed=[2.0])     # integral floats are indices
+    np.testing.assert_array_equal(np.asarray(model.inv_mass), [1.0, 0.5, 0.0])
+
+
+def test_scalar_gravity_is_a_downward_magnitude():
+    model, _ = jc.build(X, [1.0, 1.0, 1.0], rods=[(0, 1)], gravity=3.7)
+    np.testing.assert_array_equal(np.asarray(model.gravity), [0.0, -3.7])
+    model, _ = jc.build(X, [1.0, 1.0, 1.0], rods=[(0, 1)], gravity=[0.0, 3.7])   # a vector is taken as given
+    np.testing.assert_array_equal(np.asarray(model.gravity), [0.0, 3.7])
+
+
+def test_heavy_particle_in_float64_is_not_fixed():
+    """1e300 kg has a normal inverse in float64: the particle is free and falls (its link cannot hold it)."""
+    model, state = jc.build(X, [1.0, 1e300, 1.0], rods=[(0, 1), (1, 2)], fixed=[0])
+    assert float(model.inv_mass[1]) > 0
+    final, _ = jc.rollout(model, state, jc.PGS(), 1 / 240, 24)
+    assert np.isfinite(np.asarray(final.x)).all() and float(final.x[1, 1]) < -0.01
 
 
 def test_fixed_particle_mass_is_ignored():
@@ -54,6 +94,10 @@ def test_fixed_particle_mass_is_ignored():
     (lambda: jc.PGS(beta=float("nan")), "beta"),
     (lambda: jc.PGS(beta=jnp.ones(2)), "beta"),
     (lambda: jc.PGS(warm_start="yes"), "warm_start"),
+    (lambda: jc.PGS(beta="0.5"), "beta.*real"),               # was accepted as a string
+    (lambda: jc.PGS(beta=1j), "beta.*complex"),
+    (lambda: jc.XPBD(compliance="0"), "compliance.*real"),
+    (lambda: jc.Direct(beta=0.3 + 0j), "beta.*complex"),
 ])
 def test_solver_rejects_bad_arguments(make, match):
     with pytest.raises((ValueError, TypeError), match=match):
@@ -86,6 +130,88 @@ def test_rollout_and_step_reject_bad_calls():
         model.replace(inv_mass=jnp.array([0.0, -1.0]))
 
 
+@pytest.mark.parametrize("dt, match", [
+    (0.01 + 1j, "dt.*complex"),                  # was cast to real with a warning
+    ("0.01", "dt.*str"),
+    (np.array([0.01]), "dt.*scalar"),
+    (1e-45, "dt.*outside the range float32"),    # 0 in float32: NaN
+    (1e30, "dt.*outside the range float32"),     # h^2 g overflows float32: NaN
+])
+def test_dt_must_be_a_usable_real_scalar(dt, match):
+    model, state = jc.scenes.pendulum(dtype=np.float32)
+    with pytest.raises((ValueError, TypeError), match=match):
+        jc.rollout(model, state, jc.PGS(), dt, 3)
+
+
+def test_dt_range_follows_dtype_and_substeps():
+    model64, state64 = jc.scenes.pendulum()
+    final, _ = jc.rollout(model64, state64, jc.PGS(), 1e-45, 2)     # representable in float64: it runs
+    assert np.isfinite(np.asarray(final.x)).all()
+    model, state = jc.scenes.pendulum(dtype=np.float32)
+    with pytest.raises(ValueError, match="20000 substeps"):
+        jc.rollout(model, state, jc.XPBD(substeps=20000), 2e-13, 1)
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("x", jnp.zeros((2, 2), jnp.int32), "state.x.*floating"),
+    ("v", jnp.zeros((2, 2), bool), "state.v.*floating"),
+    ("x", [[0.0, 0.0], [0.0, -1.0]], "state.x.*array"),
+    ("lam", (0.0,), "state.lam.*array"),
+])
+def test_states_must_be_float_arrays(field, value, match):
+    model, state = jc.scenes.pendulum()
+    with pytest.raises(TypeError, match=match):
+        jc.rollout(model, state.replace(**{field: value}), jc.PGS(), 1 / 240, 3)
+
+
+def test_recording_that_cannot_fit_in_memory_is_refused_before_compiling():
+    model, state = jc.scenes.pendulum()
+    with pytest.raises(ValueError, match="save_every"):
+        jc.rollout(model, state, jc.PGS(), 1 / 240, 10 ** 12)
+    batch = jax.tree.map(lambda a: jnp.broadcast_to(a, (4,) + a.shape), state)
+    with pytest.raises(ValueError, match="save_every"):
+        jc.batched_rollout(model, batch, jc.PGS(), 1 / 240, 10 ** 12)
+    # keeping only the final state needs no record: accepted (not run here)
+    jc._sim.check_record_memory("rollout", model, state, 10 ** 12, 10 ** 12)
+
+
+def test_batched_rollout_rejects_an_empty_batch():
+    model, state = jc.scenes.pendulum()
+    empty = jax.tree.map(lambda a: jnp.zeros((0,) + a.shape, a.dtype), state)
+    with pytest.raises(ValueError, match="empty batch"):
+        jc.batched_rollout(model, empty, jc.PGS(), 1 / 240, 3)
+
+
+def test_penalty_above_its_stability_limit_warns_before_running():
+    """The default Penalty at dt 1/240 is above its stability limit on a unit double pendulum (it stretched it
+    453x, silently): the call now says so, naming substeps; below the limit it is silent."""
+    model, state = jc.scenes.double_pendulum(angles=(0.5, 0.5))
+    solver = jc.Penalty()
+    assert 1 / 240 > solver.stability_limit(model)
+    with pytest.warns(RuntimeWarning, match="substeps >= 2"):
+        jc.rollout(model, state, solver, 1 / 240, 2)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        jc.rollout(model, state, jc.Penalty(substeps=2), 1 / 240, 2)
+
+
+def test_diagnostics_check_shapes_against_the_model():
+    model, state = jc.scenes.chain(3)
+    other, _ = jc.scenes.cloth(3, 3)
+    _, tr = jc.rollout(model, state, jc.PGS(), 1 / 240, 4)
+    with pytest.raises(ValueError, match=r"violation: `x`"):
+        jc.violation(model, tr.x[:, :3])
+    with pytest.raises(ValueError, match=r"energy: `x`"):
+        jc.energy(model, tr.x[..., :1], tr.v)
+    with pytest.raises(ValueError, match=r"traj.lam"):
+        jc.diagnose(model, tr.replace(lam=tr.lam[:, :2]))
+    with pytest.raises(ValueError, match="model that made the trajectory"):
+        jc.diagnose(other, tr)
+    with pytest.raises(ValueError, match=r"state0.x"):
+        jc.diagnose(model, tr, state.replace(x=state.x[:2]))
+
+
 @pytest.mark.parametrize("make, match", [
     (lambda: jc.scenes.pendulum(length=-1.0), "length"),
     (lambda: jc.scenes.double_pendulum(masses=(1.0,)), "masses"),
@@ -93,9 +219,16 @@ def test_rollout_and_step_reject_bad_calls():
     (lambda: jc.scenes.chain(kind="spring"), "kind"),
     (lambda: jc.scenes.cloth(nx=1), "nx"),
     (lambda: jc.scenes.cloth(mass=0.0), "mass"),
+    (lambda: jc.scenes.pendulum(dtype=np.int32), "dtype"),          # truncated the positions to the pivot
+    (lambda: jc.scenes.pendulum(length=[1.0, 2.0]), "length.*scalar"),
+    (lambda: jc.scenes.pendulum(angle=0.3j), "angle.*complex"),
+    (lambda: jc.scenes.double_pendulum(angles=(0.1, np.nan)), "angles.*finite"),
+    (lambda: jc.scenes.chain(4, end_mass=-1.0), "end_mass"),
+    (lambda: jc.scenes.cloth(3, 3, size="1"), "size.*real"),
+    (lambda: jc.scenes.chain(4, gravity=-9.81), "gravity"),
 ])
 def test_scenes_reject_bad_arguments(make, match):
-    with pytest.raises(ValueError, match=match):
+    with pytest.raises((ValueError, TypeError), match=match):
         make()
 
 
@@ -109,3 +242,16 @@ def test_validation_lets_tracers_through():
         return jc.rollout(m, state, jc.PGS(beta=beta), dt, 5)[0].x
 
     assert np.isfinite(np.asarray(f(model.rest_length, 0.2, 1 / 240))).all()
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["bench", "--repeats", "0"], "--repeats: must be an integer >= 1"),
+    (["bench", "--repeats", "two"], "--repeats: must be an integer >= 1"),
+    (["bench", "--out", "/no/such/folder/bench.json"], "does not exist or is not writable"),
+])
+def test_cli_refuses_bad_arguments_before_running(argv, match, capsys):
+    from jaxcon._cli import main
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert re.search(match, capsys.readouterr().err)
