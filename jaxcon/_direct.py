@@ -10,7 +10,7 @@ from jax.lax.linalg import tridiagonal_solve
 
 from . import _layout as L
 from ._pytree import pytree_dataclass, static_field
-from ._solver import Solver, _check_int, _check_scalar
+from ._solver import Solver, _check_int, _check_scalar, check_stabilization
 from ._substeps import substepped
 
 _METHODS = ("auto", "dense", "tridiagonal")
@@ -68,14 +68,20 @@ class Direct(Solver):
         Chains of fewer than 9 constraints are always solved densely (same system, same result).
       regularisation: relative diagonal regularisation (constraint force mixing), >= 0, a leaf; values below
         1e3 machine epsilons are raised to that.
+      stabilization: 'baumgarte' (default, above) or 'split' (static): split impulses. The same matrix is solved
+        for two right-hand sides, (J M^-1 J^T) lam = J v (no bias: lam is the physical impulse) and
+        (J M^-1 J^T) lam_p = (beta / h) C; v_p = -M^-1 J^T lam_p moves the positions of the substep,
+        x += h (v + v_p), and is discarded, so position correction adds no kinetic energy.
     """
 
     beta: Any = 0.2
     substeps: int = static_field(default=1)
     method: str = static_field(default="auto")
     regularisation: Any = 1e-6
+    stabilization: str = static_field(default="baumgarte")
 
     def __post_init__(self):
+        check_stabilization("Direct", self.stabilization)
         _check_scalar("Direct", "beta", self.beta, 0.0, 1.0)
         _check_int("Direct", "substeps", self.substeps, 1)
         _check_scalar("Direct", "regularisation", self.regularisation, 0.0, 1.0)
@@ -105,15 +111,16 @@ class Direct(Solver):
         rest = L.constraints_out(topo, sys.rest)
         eps = _regularisation(self.regularisation, dtype)
 
+        split = self.stabilization == "split"
+
         def substep(x, v, _lam, h):
             v = sys.apply_gravity(v, h)
             xu, vu = L.particles_out(topo, x), L.particles_out(topo, v)  # [n, dim], user order
-            if tri:
-                lam_u, vu = _chain_solve(xu, vu, w, rest, beta / h, eps)
-            else:
-                lam_u, vu = _dense_solve(xu, vu, w, rest, topo, beta / h, eps)
-            v = L.particles_in(topo, vu)
-            return x + h * v, v, L.constraints_in(topo, lam_u)
+            solve = _chain_solve if tri else functools.partial(_dense_solve, topo=topo)
+            lam_u, dvs = solve(xu, vu, w, rest, beta / h, eps, split=split)
+            v = L.particles_in(topo, vu + dvs[0])
+            move = v if not split else v + L.particles_in(topo, dvs[1])    # split: + the pseudo-velocity
+            return x + h * move, v, L.constraints_in(topo, lam_u)
 
         return substepped(substep, self.substeps, x, v, lam, dt)
 
@@ -141,9 +148,11 @@ def _coupling(topo):
     return tuple(np.concatenate(x) for x in (a, b, p, s))
 
 
-def _dense_solve(xu, vu, w, rest, topo, rate, eps):
+def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, split=False):
     """One dense solve of J W J^T lam = b. The matrix is assembled entry by entry from the pairs of
-    constraints that share a particle (O(sum of squared degrees), not O(m^2 n)); the solve is O(m^3)."""
+    constraints that share a particle (O(sum of squared degrees), not O(m^2 n)); the solve is O(m^3).
+    Returns (lam, velocity changes): one change (-W J^T lam) for Baumgarte, or, with `split`, the velocity
+    change and the pseudo-velocity, from one solve with two right-hand sides."""
     i, j, m = topo.i, topo.j, topo.m
     dist, nrm = L.safe_norm(xu[j] - xu[i], axis=-1)          # [m], [m, dim]
     ok = ((w[i] + w[j]) > 0) & (dist > 0)
@@ -154,14 +163,23 @@ def _dense_solve(xu, vu, w, rest, topo, rate, eps):
     diag = jnp.diagonal(A)
     A = jnp.where(both, A, 0) + jnp.diag(jnp.where(ok, eps * diag, 1))
     rel = jnp.sum((vu[j] - vu[i]) * nrm, -1)
-    b = jnp.where(ok, rel + rate * (dist - rest), 0)
-    lam = jnp.linalg.solve(A, b)
-    p = nrm * lam[:, None]                                   # J^T lam: -p at i, +p at j
-    jt = jnp.zeros_like(vu).at[i].add(-p).at[j].add(p)
-    return lam, vu - w[:, None] * jt
+    b = _rhs(ok, rel, rate * (dist - rest), split)
+    lams = jnp.linalg.solve(A, b)                              # [m, 1 or 2]
+
+    def change(lam):
+        p = nrm * lam[:, None]                                   # J^T lam: -p at i, +p at j
+        return -w[:, None] * jnp.zeros_like(vu).at[i].add(-p).at[j].add(p)
+
+    return lams[:, 0], tuple(change(lams[:, c]) for c in range(lams.shape[1]))
 
 
-def _chain_solve(xu, vu, w, rest, rate, eps):
+def _rhs(ok, rel, correction, split):
+    """[m, 1] right-hand side J v + (beta / h) C, or with split impulses [m, 2]: J v and (beta / h) C apart."""
+    cols = [rel, correction] if split else [rel + correction]
+    return jnp.stack([jnp.where(ok, c, 0) for c in cols], -1)
+
+
+def _chain_solve(xu, vu, w, rest, rate, eps, *, split=False):
     # Constraint k joins particle k and k+1; n_k points from k to k+1 (lam is orientation-independent).
     dist, nrm = L.safe_norm(xu[1:] - xu[:-1], axis=-1)        # [m], [m, dim]
     ok = ((w[:-1] + w[1:]) > 0) & (dist > 0)
@@ -173,9 +191,11 @@ def _chain_solve(xu, vu, w, rest, rate, eps):
     du = jnp.concatenate([off, zero])
     d = jnp.where(ok, diag * (1 + eps), 1)
     rel = jnp.sum((vu[1:] - vu[:-1]) * nrm, -1)
-    b = jnp.where(ok, rel + rate * (dist - rest), 0)
-    lam = tridiagonal_solve(dl, d, du, b[:, None])[:, 0]
-    p = nrm * lam[:, None]                                     # [m, dim]
-    pad = jnp.zeros((1, p.shape[1]), p.dtype)
-    vu = vu + w[:, None] * (jnp.concatenate([p, pad]) - jnp.concatenate([pad, p]))
-    return lam, vu
+    lams = tridiagonal_solve(dl, d, du, _rhs(ok, rel, rate * (dist - rest), split))
+
+    def change(lam):
+        p = nrm * lam[:, None]                                     # [m, dim]
+        pad = jnp.zeros((1, p.shape[1]), p.dtype)
+        return w[:, None] * (jnp.concatenate([p, pad]) - jnp.concatenate([pad, p]))
+
+    return lams[:, 0], tuple(change(lams[:, c]) for c in range(lams.shape[1]))

@@ -9,7 +9,8 @@ from jax import lax
 
 from . import _layout as L
 from ._pytree import pytree_dataclass, static_field
-from ._solver import Solver, _check_bool, _check_int, _check_scalar, clamp_ropes, frames, velocity_bias, warm_start
+from ._solver import (Solver, _check_bool, _check_int, _check_scalar, check_stabilization, clamp_ropes, frames,
+                      position_correction, pseudo_velocities, velocity_bias, warm_start)
 from ._substeps import substepped
 
 
@@ -39,6 +40,8 @@ class Jacobi(Solver):
         constraints at one particle) of the model being solved.
       warm_start: start from the previous step's impulses (static).
       substeps: (sub)steps per step, static, >= 1.
+      stabilization: 'baumgarte' (default) or 'split' (static): split impulses as in `PGS`, the pseudo-velocity
+        solve by the same Jacobi iteration and relaxation.
     """
 
     iterations: int = static_field(default=20)
@@ -46,8 +49,10 @@ class Jacobi(Solver):
     relaxation: Any = None
     warm_start: bool = static_field(default=True)
     substeps: int = static_field(default=1)
+    stabilization: str = static_field(default="baumgarte")
 
     def __post_init__(self):
+        check_stabilization("Jacobi", self.stabilization)
         _check_int("Jacobi", "iterations", self.iterations, 1)
         _check_int("Jacobi", "substeps", self.substeps, 1)
         _check_bool("Jacobi", "warm_start", self.warm_start)
@@ -65,7 +70,8 @@ class Jacobi(Solver):
         def substep(x, v, lam_ws, h):
             v = sys.apply_gravity(v, h)
             fr = frames(sys, x)
-            bias = velocity_bias(topo, fr, beta, h)
+            split = self.stabilization == "split"
+            bias = velocity_bias(topo, fr, jnp.zeros((), dtype) if split else beta, h)
             if self.warm_start:
                 v, lam = warm_start(sys, v, fr, lam_ws)
             else:
@@ -85,6 +91,9 @@ class Jacobi(Solver):
                 return v + dv, tuple(new)
 
             v, lam = lax.fori_loop(0, self.iterations, iterate, (v, lam))
+            if split:
+                vp = pseudo_velocities(sys, fr, position_correction(topo, fr, beta, h), self.iterations, relax)
+                return x + h * (v + vp), v, lam
             return x + h * v, v, lam
 
         return substepped(substep, self.substeps, x, v, lam, dt)

@@ -36,7 +36,7 @@ from ._softstep import SoftStep
 from ._solver import PGS
 from ._xpbd import XPBD
 
-SOLVERS = ("PGS", "Jacobi", "XPBD", "Penalty", "Direct", "SoftStep", "RATTLE")
+SOLVERS = ("PGS", "Jacobi", "XPBD", "Penalty", "Direct", "SoftStep", "RATTLE", "PGS-split", "Direct-split")
 # Section 7 of the method article (rows it has), plus the library's other solvers.
 METHOD = {
     "Penalty": ("stiff spring", "Toy demos"),
@@ -46,7 +46,14 @@ METHOD = {
     "Jacobi": ("projected Jacobi", "GPU particle solvers (Flex)"),
     "SoftStep": ("soft step", "Box2D v3"),
     "RATTLE": ("RATTLE / SHAKE", "Molecular dynamics"),
+    "PGS-split": ("sequential impulse, split impulses", "Box2D v2, Bullet (splitImpulse)"),
+    "Direct-split": ("direct lambda solve, split impulses", "this project"),
 }
+
+
+def _name(s):
+    """Series name of a solver: its class, with '-split' for split-impulse stabilisation."""
+    return type(s).__name__ + ("-split" if getattr(s, "stabilization", None) == "split" else "")
 
 
 def _pen(stiffness, model, dt, safety=0.5):
@@ -60,6 +67,11 @@ def _soft(substeps, dt):
 
 
 def _label(s):
+    base = _label_base(s)
+    return base[:-1] + ",split)" if _name(s).endswith("-split") else base
+
+
+def _label_base(s):
     name = type(s).__name__
     if name == "PGS":
         return f"PGS(it={s.iterations},sub={s.substeps})"
@@ -86,10 +98,12 @@ def _grid_pendulum(model, small):
     if small:
         return [(PGS(10), 1 / 240), (Jacobi(20), 1 / 240), (XPBD(substeps=4), 1 / 60),
                 (_pen(1e4, model, 1 / 60), 1 / 60), (Direct(), 1 / 240), (_soft(4, 1 / 60), 1 / 60),
-                (RATTLE(4), 1 / 250)]
+                (RATTLE(4), 1 / 250), (PGS(10, stabilization="split"), 1 / 240),
+                (Direct(stabilization="split"), 1 / 240)]
     g = []
     for dt in (1 / 240, 1 / 960, 1 / 3840):
-        g += [(PGS(10), dt), (Jacobi(20), dt), (Direct(), dt)]
+        g += [(PGS(10), dt), (Jacobi(20), dt), (Direct(), dt), (PGS(10, stabilization="split"), dt),
+              (Direct(stabilization="split"), dt)]
     for sub in (4, 16, 64):
         g += [(XPBD(substeps=sub), 1 / 60), (_soft(sub, 1 / 60), 1 / 60)]
     for k in (1e4, 1e5, 1e6):
@@ -105,13 +119,14 @@ def _grid_chain(model, small):
     dt = 1 / 60
     if small:
         return [(PGS(4, substeps=16), dt), (Jacobi(20, substeps=16), dt), (XPBD(substeps=16), dt),
-                (_pen(1e3, model, dt), dt), (Direct(substeps=16), dt), (_soft(16, dt), dt), (RATTLE(10), 1 / 480)]
+                (_pen(1e3, model, dt), dt), (Direct(substeps=16), dt), (_soft(16, dt), dt), (RATTLE(10), 1 / 480),
+                (PGS(4, substeps=16, stabilization="split"), dt)]
     g = []
     for sub in (16, 64, 256):
         g += [(PGS(4, substeps=sub), dt), (Jacobi(20, substeps=sub), dt), (XPBD(substeps=sub), dt),
-              (_soft(sub, dt), dt)]
+              (_soft(sub, dt), dt), (PGS(4, substeps=sub, stabilization="split"), dt)]
     for sub in (16, 32, 64):
-        g.append((Direct(substeps=sub), dt))
+        g += [(Direct(substeps=sub), dt), (Direct(substeps=sub, stabilization="split"), dt)]
     for k in (1e4, 1e5, 1e6):
         g.append((_pen(k, model, dt), dt))
     for rdt in (1 / 240, 1 / 960, 1 / 3840):
@@ -125,7 +140,8 @@ def _grid_cloth(model, small):
         return [(PGS(10), dt), (XPBD(substeps=4), dt), (_soft(4, dt), dt), (Direct(), dt)]
     g = []
     for sub in (1, 4, 16):
-        g += [(PGS(10, substeps=sub), dt), (Jacobi(20, substeps=sub), dt)]
+        g += [(PGS(10, substeps=sub), dt), (Jacobi(20, substeps=sub), dt),
+              (PGS(10, substeps=sub, stabilization="split"), dt)]
     for sub in (4, 16, 64):
         g += [(XPBD(substeps=sub), dt), (_soft(sub, dt), dt)]
     for k in (1e2, 1e3, 1e4):
@@ -150,7 +166,7 @@ def _point(scene, model, state, solver, dt, T, repeats, error_fn):
     steps = int(round(T / dt))
     t_c, t_run, final, tr = _run(model, state, solver, dt, steps, repeats)
     errs = error_fn(final, tr)
-    row = {"scene": scene, "solver": type(solver).__name__, "config": _label(solver), "dt": dt, "steps": steps,
+    row = {"scene": scene, "solver": _name(solver), "config": _label(solver), "dt": dt, "steps": steps,
            "t_end": steps * dt, **_knobs(solver), "compile_s": t_c, "wall_s": t_run,
            "cost_s_per_sim_s": t_run / (steps * dt), "cost_us_per_step": t_run / steps * 1e6, **errs}
     return row
@@ -268,7 +284,8 @@ def _tradeoff(chain_ctx, small, repeats, log):
 
 def _scaling_solvers(dt):
     return [PGS(10), Jacobi(20), XPBD(substeps=10), Penalty(stiffness=1e4, substeps=10), Direct(),
-            SoftStep(substeps=4, hertz=0.25 * 4 / dt), RATTLE(10)]
+            SoftStep(substeps=4, hertz=0.25 * 4 / dt), RATTLE(10), PGS(10, stabilization="split"),
+            Direct(stabilization="split")]
 
 
 def _scaling(small, repeats, log):
@@ -280,12 +297,14 @@ def _scaling(small, repeats, log):
         model, state = scenes.chain(n, 5.0, 0.5, 10.0, dtype=np.float32)
         for solver in _scaling_solvers(dt):
             t_c, t_run, _, _ = _run(model, state, solver, dt, steps, repeats)
-            rows.append({"solver": type(solver).__name__, "config": _label(solver), "links": n, "dt": dt,
+            rows.append({"solver": _name(solver), "config": _label(solver), "links": n, "dt": dt,
                          "steps": steps, "compile_s": t_c, "cost_us_per_step": t_run / steps * 1e6})
             log(rows[-1])
     expo = {}
     for s in SOLVERS:
         pts = [(r["links"], r["cost_us_per_step"]) for r in rows if r["solver"] == s]
+        if len(pts) < 2:
+            continue
         x, y = np.log([p[0] for p in pts]), np.log([p[1] for p in pts])
         expo[s] = float(np.polyfit(x, y, 1)[0])
     return rows, expo
@@ -294,7 +313,8 @@ def _scaling(small, repeats, log):
 def _drift_solvers(model):
     return [(PGS(10), 1 / 240), (Jacobi(20), 1 / 240), (XPBD(substeps=4), 1 / 60),
             (_pen(1e5, model, 1 / 60), 1 / 60), (Direct(), 1 / 240), (_soft(4, 1 / 60), 1 / 60),
-            (RATTLE(4), 1 / 250)]
+            (RATTLE(4), 1 / 250), (PGS(10, stabilization="split"), 1 / 240),
+            (Direct(stabilization="split"), 1 / 240)]
 
 
 def _drift(small, log):
@@ -304,7 +324,7 @@ def _drift(small, log):
     for solver, dt in _drift_solvers(model):
         steps = int(round(T / dt))
         _, tr = jax.jit(lambda s, solver=solver, dt=dt, steps=steps: rollout(model, s, solver, dt, steps))(state)
-        rows.append({"solver": type(solver).__name__, "config": _label(solver), "dt": dt, "t_end": steps * dt,
+        rows.append({"solver": _name(solver), "config": _label(solver), "dt": dt, "t_end": steps * dt,
                      "energy_drift": _finite_or_inf(energy_drift(model, state, tr)),
                      "violation_end": _finite_or_inf(nan_max(violation(model, tr.x[-1])))})
         log(rows[-1])
@@ -411,7 +431,7 @@ def _table(result):
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for s in SOLVERS:
         cells = [METHOD[s][0], s] + [fmt(fc[sc][s]) for sc in scs] + \
-            [fmt(cost100.get(s)), f"{scal[s]:.2f}", fmt(drift[s]["energy_drift"]) if s in drift else "-", METHOD[s][1]]
+            [fmt(cost100.get(s)), "-" if s not in scal else f"{scal[s]:.2f}", fmt(drift[s]["energy_drift"]) if s in drift else "-", METHOD[s][1]]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
