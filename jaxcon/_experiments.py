@@ -31,3 +31,26 @@ def chain_identification(n: int = 20, seed: int = 0, beta: float = 0.2, dt: floa
     _, tr = rollout(model, state, PGS(iterations=10, beta=beta), dt, steps)
     obs = np.asarray(tr.x) + noise * rng.standard_normal(tr.x.shape)
     return model.replace(rest_length=jnp.asarray(nominal, dtype)), state, true_L, obs.astype(dtype)
+
+
+def violated_chain_identification(n: int = 8, link: float = 0.25, seed: int = 0, beta: float = 0.35,
+                                  angle: float = 1.0, dt: float = 1 / 240, steps: int = 240, every: int = 2,
+                                  noise: float = 1e-3, mass: float = 0.1, dtype=None):
+    """A chain released from a violated start: n links of nominal length `link` m (`mass` kg per bob), their
+    true rest lengths each perturbed by up to 10%, the initial positions laid out straight at `angle` rad with
+    the NOMINAL lengths, so every link starts up to 10% off its rest length and the first steps are a
+    Baumgarte correction at rate beta (which makes beta identifiable). Data: PGS(10, beta) with its default
+    warm start for `steps` steps, every `every`-th step observed with `noise` m of Gaussian noise on every
+    particle.
+
+    Returns (guess model with the nominal rest lengths, state, true rest lengths, observed [S, n + 1, 2],
+    sample_steps [S])."""
+    from .scenes import chain
+    rng = np.random.default_rng(seed)
+    model, state = chain(n, n * link, mass * n, angle=angle, dtype=dtype)
+    true_L = link * (1 + rng.uniform(-0.1, 0.1, n))
+    truth = model.replace(rest_length=jnp.asarray(true_L, model.rest_length.dtype))
+    _, tr = rollout(truth, state, PGS(iterations=10, beta=beta), dt, steps)
+    ss = np.arange(every, steps + 1, every)
+    obs = np.asarray(tr.x)[ss - 1] + noise * rng.standard_normal((len(ss),) + tr.x.shape[1:])
+    return model, state, true_L, obs.astype(np.asarray(tr.x).dtype), ss

@@ -78,42 +78,82 @@ def test_fit_observed_subset_batch_and_sample_steps():
 
 def test_fit_double_pendulum_lengths_with_windows():
     """A chaotic double pendulum observed for 2 s: fitted with windows of 0.25 s (multiple shooting)."""
-    rng = np.random.default_rng(1)
-    true_lengths = (0.9, 0.6)
-    model, state = jc.scenes.double_pendulum(lengths=true_lengths, masses=(1.0, 1.0), angles=(1.5, 2.5),
-                                             dtype=np.float64)
-    solver = jc.PGS(iterations=10, beta=0.2)
-    _, tr = jc.rollout(model, state, solver, DT, 480)
-    obs = tr.x + 1e-3 * rng.standard_normal(tr.x.shape)
-    guess = model.replace(rest_length=jnp.array([1.0, 0.5]))
-    res = jc.fit(guess, state, solver, DT, obs, ("rest_length",), window=60, optimizer="lm", steps=40,
+    model, state, solver, obs, guess, true_lengths = _double_pendulum_experiment()
+    res = jc.fit(guess, state, solver, DT, obs, ("rest_length",), window=60, optimizer="lm", steps=60,
                  patience=5, progress=False)
     np.testing.assert_allclose(res.model.rest_length, true_lengths, rtol=0.01)
     assert res.window_states is not None and res.window_states.x.shape == (7, 3, 2)
 
 
-def test_fit_cloth_rest_lengths():
-    """16x16 cloth (930 edges), every edge's rest length perturbed by up to 5%, all particles observed for 1 s
-    with 1 mm noise. The cloth is over-constrained (930 edges, 762 degrees of freedom), so lengths are only
-    partly identifiable from motion alone. The recipe: start each edge at its median observed length, then
-    refine with a windowed fit (short segments keep the loss smooth). Data and fit use XPBD with substeps, a
-    solver that keeps the cloth near its rest lengths (PGS(10) stretches it by a median 2.7% and the
-    observed lengths then say little)."""
+def _double_pendulum_experiment():
+    rng = np.random.default_rng(1)
+    true_lengths = (0.9, 0.6)
+    model, state = jc.scenes.double_pendulum(lengths=true_lengths, masses=(1.0, 1.0), angles=(1.5, 2.5))
+    solver = jc.PGS(iterations=10, beta=0.2)
+    _, tr = jc.rollout(model, state, solver, DT, 480)
+    obs = tr.x + 1e-3 * rng.standard_normal(tr.x.shape)
+    return model, state, solver, obs, model.replace(rest_length=jnp.array([1.0, 0.5])), true_lengths
+
+
+# ---- acceptance: default arguments from the nominal start (issue 11) -----------------------------------------
+def test_defaults_fit_a_chain_released_from_a_violated_start():
+    """8 links of nominal 0.25 m, true lengths perturbed by up to 10%, true beta 0.35, released at 1 rad from
+    positions laid out with the nominal lengths (every link starts up to 10% off its rest length), PGS(10)
+    data, every 2nd step of 1 s observed with 1 mm noise. From the nominal lengths and beta 0.2, with default
+    arguments: lengths within 1%, beta within 5%. The default grows the horizon (10, 20, ..., 160, 240 steps),
+    with Levenberg-Marquardt (9 fitted scalars), compiling once."""
+    from jaxcon._experiments import violated_chain_identification
+    guess, state, true_L, obs, ss = violated_chain_identification()
+    traces = []
+    orig = jc.PGS._step
+
+    def counting(self, *a):
+        traces.append(1)
+        return orig(self, *a)
+
+    jc.PGS._step = counting
+    try:
+        t0 = time.perf_counter()
+        res = jc.fit(guess, state, jc.PGS(10, beta=0.2), DT, obs, ("rest_length", "beta"), sample_steps=ss,
+                     progress=False)
+        elapsed = time.perf_counter() - t0
+    finally:
+        jc.PGS._step = orig
+    assert np.max(np.abs(np.asarray(res.model.rest_length) / true_L - 1)) < 0.01
+    assert abs(float(res.solver.beta) / 0.35 - 1) < 0.05
+    assert res.converged and res.reason == "tolerance"
+    assert list(np.unique(res.horizons)) == [10, 20, 40, 80, 160, 240] and res.horizons[-1] == 240
+    assert res.iterations == len(res.history) == len(res.horizons)
+    # compiled once for all stages: the update traces the rollout a fixed number of times (LM: the residuals,
+    # their forward-mode Jacobian and the trial step), not once per stage or iteration
+    assert len(traces) <= 3, len(traces)
+    assert elapsed < 60, elapsed          # the issue's budget on the 2-core CPU (about 5 s measured)
+
+
+def test_defaults_fit_double_pendulum_lengths_from_two_seconds():
+    model, state, solver, obs, guess, true_lengths = _double_pendulum_experiment()
+    res = jc.fit(guess, state, solver, DT, obs, ("rest_length",), progress=False)
+    np.testing.assert_allclose(res.model.rest_length, true_lengths, rtol=0.01)
+    assert res.converged and res.horizons[-1] == 480
+
+
+def test_defaults_fit_cloth_rest_lengths_from_nominal():
+    """16x16 cloth (930 edges), every edge's rest length perturbed by up to 5% (median 2.5% off), all particles
+    observed for 0.5 s with 1 mm noise, data and fit with XPBD(1 iteration, 4 substeps). From the NOMINAL
+    lengths with default arguments (Adam: 930 fitted scalars): median error under 2%. The cloth is
+    over-constrained (930 edges, 762 degrees of freedom), so individual lengths are only partly identifiable."""
     rng = np.random.default_rng(0)
-    model, state = jc.scenes.cloth(nx=16, ny=16, size=1.0, mass=1.0, dtype=np.float64)
+    model, state = jc.scenes.cloth(nx=16, ny=16, size=1.0, mass=1.0)
     true_L = model.rest_length * (1 + rng.uniform(-0.05, 0.05, model.n_constraints))
     solver = jc.XPBD(iterations=1, compliance=0.0, substeps=4)
-    _, tr = jc.rollout(model.replace(rest_length=true_L), state, solver, DT, 240)
+    _, tr = jc.rollout(model.replace(rest_length=true_L), state, solver, DT, 120)
     obs = np.asarray(tr.x) + 1e-3 * rng.standard_normal(tr.x.shape)
-    i, j = model.pairs.T
-    init = np.median(np.linalg.norm(obs[:, j] - obs[:, i], axis=-1), axis=0)
-    res = jc.fit(model.replace(rest_length=jnp.asarray(init)), state, solver, DT, obs, ("rest_length",),
-                 window=12, optimizer=optax.adam(1e-3), steps=12, patience=12, progress=False)
+    res = jc.fit(model, state, solver, DT, obs, ("rest_length",), progress=False)
     err = np.abs(np.asarray(res.model.rest_length) / np.asarray(true_L) - 1)
     err_nominal = np.abs(np.asarray(model.rest_length) / np.asarray(true_L) - 1)
     assert np.median(err) < 0.02, np.median(err)
-    assert np.median(err) < 0.5 * np.median(err_nominal), (np.median(err), np.median(err_nominal))
-    assert res.history[-1] < res.history[0]
+    assert np.median(err) < 0.75 * np.median(err_nominal), (np.median(err), np.median(err_nominal))
+    assert min(res.history) < 0.5 * res.history[0]
 
 
 def test_fit_validation():
@@ -127,3 +167,74 @@ def test_fit_validation():
         jc.fit(model, state, jc.PGS(), DT, obs, window=3, progress=False)
     with pytest.raises(ValueError, match="sample_steps"):
         jc.fit(model, state, jc.PGS(), DT, obs, sample_steps=np.arange(10), progress=False)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(observed=np.full((10, 2, 2), np.nan)), "observed.*finite"),          # returned the initial guess
+    (dict(observed=np.full((10, 2, 2), np.inf)), "observed.*finite"),
+    (dict(observed=np.zeros((10, 2, 2)) + 1j), "observed.*complex"),
+    (dict(learning_rate=float("nan")), "learning_rate"),
+    (dict(learning_rate=0.0), "learning_rate"),
+    (dict(continuity=-1.0), "continuity"),
+    (dict(sample_steps=np.arange(1, 11) + 0.5), "sample_steps.*whole"),       # was truncated
+    (dict(optimizer=object()), "optimizer.*optax"),
+    (dict(optimizer="sgd"), "optimizer"),
+    (dict(horizon="longer"), "horizon"),
+    (dict(horizon=[20, 10]), "horizon"),
+    (dict(steps=0), "steps"),
+    (dict(patience=1.5), "patience"),
+])
+def test_fit_refuses_bad_input_before_compiling(kwargs, match):
+    model, state = jc.scenes.pendulum()
+    args = dict(observed=np.zeros((10, 2, 2)), progress=False)
+    args.update(kwargs)
+    observed = args.pop("observed")
+    with pytest.raises((ValueError, TypeError), match=match):
+        jc.fit(model, state, jc.PGS(), DT, observed, ("rest_length",), **args)
+
+
+@pytest.mark.parametrize("solver, name", [(jc.XPBD(), "compliance"), (jc.Penalty(substeps=20), "damping")])
+def test_fit_refuses_a_log_parameter_that_starts_at_zero(solver, name):
+    """log(0) would freeze the parameter at 0 forever; say so and say what to do."""
+    model, state = jc.scenes.pendulum()
+    with pytest.raises(ValueError, match=rf"`{name}` starts at 0.*transforms"):
+        jc.fit(model, state, solver, DT, np.zeros((10, 2, 2)), (name,), progress=False)
+    # what the message suggests works: the identity transform moves it
+    _, tr = jc.rollout(model, state, solver.replace(**{name: 1e-3}), DT, 10)
+    res = jc.fit(model, state, solver, DT, tr.x, (name,), transforms={name: "identity"}, optimizer="adam",
+                 steps=3, progress=False)
+    assert float(res.params[name]) != 0.0
+
+
+def test_fit_reports_why_it_stopped_and_the_last_iteration(capsys):
+    guess, state, true_L, obs = _chain_experiment(n=4)
+    solver = jc.PGS(iterations=10, beta=0.2)
+    short = jc.fit(guess, state, solver, DT, obs[:40], ("rest_length",), steps=3, progress=True)
+    assert short.reason == "max_steps" and not short.converged and short.iterations == 3
+    err = capsys.readouterr().err
+    last = err.strip().split("\r")[-1]
+    assert " 3/3 " in last and "[max_steps]" in last, last                      # the bar ends on the last update
+    done = jc.fit(guess, state, solver, DT, obs[:40], ("rest_length",), progress=False)
+    assert done.reason == "tolerance" and done.converged and done.iterations < 300
+
+
+def test_fit_stops_on_a_non_finite_loss_without_claiming_convergence():
+    """An optimiser step that makes the parameters NaN: the next loss is non-finite, the fit stops there, says
+    why, and returns the best finite iterate (the initial guess), not 'converged'."""
+    guess, state, true_L, obs = _chain_experiment(n=3)
+    bad = optax.scale(float("nan"))
+    res = jc.fit(guess, state, jc.PGS(), DT, obs[:20], ("rest_length",), optimizer=bad, progress=False)
+    assert res.reason == "non-finite loss" and not res.converged
+    assert res.iterations == 2 and np.isfinite(res.history[0]) and not np.isfinite(res.history[1])
+    np.testing.assert_array_equal(np.asarray(res.model.rest_length), np.asarray(guess.rest_length))
+
+
+def test_fit_is_float64_under_x64_and_strict_promotion():
+    guess, state, true_L, obs = _chain_experiment(n=3)
+    model, st = jc.scenes.chain(3, 0.6, 0.3, angle=0.5)      # no dtype: float64 under x64
+    _, tr = jc.rollout(model, st, jc.PGS(), DT, 20)
+    with jax.numpy_dtype_promotion("strict"):
+        res = jc.fit(model, st, jc.PGS(beta=0.3), DT, np.asarray(tr.x), ("rest_length", "beta"), steps=5,
+                     progress=False)
+    assert res.model.rest_length.dtype == jnp.float64 and jnp.result_type(res.solver.beta) == jnp.float64
+    assert res.history.dtype == np.float64
