@@ -200,6 +200,7 @@ def bench(args) -> int:
           "rollouts ran (/proc/stat), one sign of a loaded host; fastest runs are in the JSON.")
     out = {"machine": info, "solver": f"PGS(iterations={iterations}, beta=0.2)", "results": results}
     out["xpbd_cloth"] = _xpbd_cloth(args.small, args.repeats)
+    out["gradient_compile"] = gradient_compile(args.small, args.repeats)
     if jax.config.jax_enable_x64:
         out["double_pendulum_best"] = _best_double_pendulum(args.repeats)
     if not args.no_batched:
@@ -242,6 +243,56 @@ def _xpbd_cloth(small: bool, repeats: int) -> dict:
           f"{row['min_ns_per_constraint_iteration_recording']:.2f} / "
           f"{row['min_ns_per_constraint_iteration_final_state_only']:.2f} ns; host steal "
           f"{_pct(row['host_steal_recording']).strip()} / {_pct(row['host_steal_final_state_only']).strip()}")
+    return row
+
+
+def gradient_compile(small: bool, repeats: int) -> dict:
+    """Trace, compile and run time of jax.grad of a cloth rollout's loss (PGS(10), float32, final state) with
+    respect to the rest lengths: jaxcon against the plain scatter-add PGS of `_plain_pgs`, in one process,
+    alternating (jaxcon, plain, jaxcon, plain) on this noisy host. Full size: 16x16 cloth, 100 steps."""
+    from ._plain_pgs import plain_pgs_rollout
+
+    n, steps, it, dt = (6, 10, 10, 1 / 240) if small else (16, 100, 10, 1 / 240)
+    model, state = scenes.cloth(n, n, dtype=np.float32)
+    t = model.topology
+
+    def jaxcon_loss(rest):
+        final, _ = rollout(model.replace(rest_length=rest), state, PGS(it, beta=0.2), dt, steps, save_every=steps)
+        return jax.numpy.mean(final.x[..., 2] ** 2)
+
+    def plain_loss(rest):
+        x, _, _ = plain_pgs_rollout(state.x, state.v, state.lam, model.inv_mass, rest, t.i, t.j, t.colour,
+                                    model.gravity, 0.2, dt, steps, it)
+        return jax.numpy.mean(x[..., 2] ** 2)
+
+    row = {"case": f"cloth_{n}x{n}", "steps": steps, "solver": f"PGS({it})", "dtype": "float32"}
+    for _ in range(1 if small else 2):
+        for name, fn in (("jaxcon", jaxcon_loss), ("plain", plain_loss)):
+            g = jax.jit(jax.grad(fn))
+            t0 = time.perf_counter()
+            lowered = g.lower(model.rest_length)
+            t1 = time.perf_counter()
+            compiled = lowered.compile()
+            t2 = time.perf_counter()
+            jax.block_until_ready(compiled(model.rest_length))
+            runs = []
+            for _ in range(max(1, min(repeats, 5))):
+                t3 = time.perf_counter()
+                jax.block_until_ready(compiled(model.rest_length))
+                runs.append(time.perf_counter() - t3)
+            for key, val in (("trace_s", t1 - t0), ("compile_s", t2 - t1), ("run_s", float(np.median(runs)))):
+                row.setdefault(f"{name}_{key}", []).append(val)
+            row[f"{name}_stablehlo_ops"] = lowered.as_text().count(" = ")
+    for key in [k for k in row if k.endswith("_s")]:
+        row[key] = float(np.min(row[key]))        # the quieter of the alternating rounds
+    total = {k: row[f"{k}_trace_s"] + row[f"{k}_compile_s"] for k in ("jaxcon", "plain")}
+    row["trace_plus_compile_ratio"] = total["jaxcon"] / total["plain"]
+    print(f"\ngradient of a {n}x{n} cloth rollout ({steps} steps, PGS({it}), float32) w.r.t. rest lengths, best of "
+          f"{1 if small else 2} alternating round(s): jaxcon trace {row['jaxcon_trace_s']:.2f} s + compile {row['jaxcon_compile_s']:.2f} s, "
+          f"run {row['jaxcon_run_s'] * 1e3:.1f} ms ({row['jaxcon_stablehlo_ops']} StableHLO ops); plain scatter-add "
+          f"PGS trace {row['plain_trace_s']:.2f} s + compile {row['plain_compile_s']:.2f} s, run "
+          f"{row['plain_run_s'] * 1e3:.1f} ms ({row['plain_stablehlo_ops']} ops); trace + compile ratio "
+          f"{row['trace_plus_compile_ratio']:.2f}")
     return row
 
 

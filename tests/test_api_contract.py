@@ -74,6 +74,11 @@ def test_bench_writes_json(tmp_path, capsys):
     assert 0 < xp["max_violation"] < 0.05
     assert 0 < xp["min_ns_per_constraint_iteration_recording"] <= xp["ns_per_constraint_iteration_recording"]
     assert data["host_steal"] is None or 0 <= data["host_steal"] <= 1
+    gc = data["gradient_compile"]
+    for impl in ("jaxcon", "plain"):
+        assert gc[f"{impl}_trace_s"] > 0 and gc[f"{impl}_compile_s"] > 0 and gc[f"{impl}_run_s"] > 0
+        assert gc[f"{impl}_stablehlo_ops"] > 0
+    assert gc["trace_plus_compile_ratio"] > 0
     assert {r["batch"] for r in data["batched"]} >= {1, 64}
     assert {r["mode"] for r in data["batched"]} == {"vmap", "chunks of 32"}   # 64 = two chunks of 32
     assert all(r["particle_steps_per_s"] > 0 for r in data["batched"])

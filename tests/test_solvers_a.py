@@ -197,3 +197,25 @@ def test_solvers_take_traced_parameters_under_vmap():
     one = jc.rollout(model, state, jc.XPBD(compliance=1e-3, substeps=4), 1 / 60, 30)[0]
     np.testing.assert_allclose(finals.x[1], one.x, rtol=1e-12)
     assert np.abs(finals.x[0] - finals.x[1]).max() > 1e-4
+
+
+def test_plain_scatter_add_reference_is_the_same_pgs():
+    """The bench's gradient-compile reference (jaxcon._plain_pgs) computes what jc.PGS computes: same final state
+    and gradient on a small cloth, so the compile-time comparison is like for like."""
+    from jaxcon._plain_pgs import plain_pgs_rollout
+    model, state = jc.scenes.cloth(5, 4, dtype=np.float64)
+    t = model.topology
+
+    def ours(rest):
+        final, _ = jc.rollout(model.replace(rest_length=rest), state, jc.PGS(6, beta=0.2), 1 / 240, 15)
+        return final.x
+
+    def plain(rest):
+        return plain_pgs_rollout(state.x, state.v, state.lam, model.inv_mass, rest, t.i, t.j, t.colour,
+                                 model.gravity, 0.2, 1 / 240, 15, 6)[0]
+
+    rest = model.rest_length * 0.97
+    np.testing.assert_allclose(np.asarray(ours(rest)), np.asarray(plain(rest)), rtol=0, atol=1e-12)
+    g1 = jax.grad(lambda r: jnp.sum(ours(r)[..., 2]))(rest)
+    g2 = jax.grad(lambda r: jnp.sum(plain(r)[..., 2]))(rest)
+    np.testing.assert_allclose(np.asarray(g1), np.asarray(g2), rtol=1e-9, atol=1e-12)
