@@ -80,14 +80,27 @@ def step(model: Model, state: State, solver: Solver, dt) -> State:
     return _step_jit(model, state, solver, dt)
 
 
-@functools.partial(jax.jit, static_argnames=("steps", "save_every", "checkpoint"))
-def _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint=None):
+#: Rematerialise every step in reverse mode (see `_rollout_jit`). A module flag so the bench can compare both
+#: programs; `rollout` reads it at each call and passes it as a static argument.
+REMAT_STEPS = True
+
+
+@functools.partial(jax.jit, static_argnames=("steps", "save_every", "checkpoint", "remat"))
+def _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint=None, remat=True):
     sys, x, v, lam = _enter(model, state)
     dt = jnp.asarray(dt, x.dtype)
     t = model.topology
 
+    # Reverse mode recomputes each step from its carry instead of storing the step's intermediates: a step
+    # holds dozens of small per-colour arrays (frames, biases, warm start), and stacking each of them over the
+    # time loop made the gradient's program 2x larger and slower to compile (docs/solvers-a.md). A rollout
+    # that is not differentiated is unaffected.
+    step = jax.checkpoint(lambda carry: solver._step(sys, *carry, dt), prevent_cse=False,
+                          policy=jax.checkpoint_policies.nothing_saveable) if remat else (
+        lambda carry: solver._step(sys, *carry, dt))
+
     def one(_, carry):
-        return solver._step(sys, *carry, dt)
+        return step(carry)
 
     def body(carry, _):
         if save_every == 1:
@@ -199,7 +212,7 @@ def rollout(model: Model, state: State, solver: Solver, dt, steps: int, *, save_
         if checkpoint >= steps:
             checkpoint = steps
     check_record_memory("rollout", model, state, steps, save_every)
-    return _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint)
+    return _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint, REMAT_STEPS)
 
 
 @functools.partial(jax.jit, static_argnames=("steps", "save_every", "chunk"))
