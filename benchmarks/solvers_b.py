@@ -1,4 +1,4 @@
-"""Measurements for docs/solvers-b.md: accuracy and wall time of Direct, SoftStep, RATTLE (and PGS).
+"""Measurements for docs/solvers.md: accuracy and wall time of Direct, SoftStep, RATTLE (and PGS).
 
 Run from the repository root: python benchmarks/solvers_b.py [pendulum|chain|direct]
 """

@@ -1,21 +1,33 @@
-"""jaxcon: differentiable constrained particle dynamics in JAX."""
-from . import scenes as scenes
-from ._model import Model as Model, State as State, Trajectory as Trajectory, build as build
-from ._sim import batched_rollout as batched_rollout, rollout as rollout, step as step
-from ._solver import PGS as PGS, Solver as Solver
-from ._jacobi import Jacobi as Jacobi
-from ._xpbd import XPBD as XPBD
-from ._penalty import Penalty as Penalty
-from ._direct import Direct as Direct
-from ._softstep import SoftStep as SoftStep
-from ._rattle import RATTLE as RATTLE
-from ._diagnostics import (
+"""jaxcon: differentiable constrained particle dynamics in JAX.
+
+The public API is what this module exports (see docs/api.md). The package is laid out as:
+
+  core/            the model, its static topology and internal layout, argument checks, step / rollout loops
+  solvers/         one module per solver (PGS, Jacobi, Direct, Penalty, XPBD, SoftStep, RATTLE)
+  identification/  fitting physical parameters to observed motion (`fit`)
+  diagnostics.py   violation, energies, drift and `diagnose`
+  scenes.py        ready-made scenes (pendulums, chains, cloth)
+  bench/           the command line, benchmarks and their independent references (not library API)
+"""
+from jaxcon import scenes as scenes
+from jaxcon.core.model import Model as Model, State as State, Trajectory as Trajectory, build as build
+from jaxcon.core.sim import batched_rollout as batched_rollout, rollout as rollout, step as step
+from jaxcon.core.system import Solver as Solver
+from jaxcon.diagnostics import (
+    Diagnosis as Diagnosis,
+    diagnose as diagnose,
     energy as energy,
     energy_drift as energy_drift,
     kinetic_energy as kinetic_energy,
     violation as violation,
 )
-from ._diagnose import Diagnosis as Diagnosis, diagnose as diagnose
-from ._fit import FitResult as FitResult, fit as fit
+from jaxcon.identification.fit import FitResult as FitResult, fit as fit
+from jaxcon.solvers.direct import Direct as Direct
+from jaxcon.solvers.jacobi import Jacobi as Jacobi
+from jaxcon.solvers.penalty import Penalty as Penalty
+from jaxcon.solvers.pgs import PGS as PGS
+from jaxcon.solvers.rattle import RATTLE as RATTLE
+from jaxcon.solvers.softstep import SoftStep as SoftStep
+from jaxcon.solvers.xpbd import XPBD as XPBD
 
 __version__ = "0.1.0"

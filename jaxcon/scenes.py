@@ -11,7 +11,8 @@ from typing import Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from ._model import _check_values, build, check_real, resolve_dtype
+from jaxcon.core.checks import check_real, check_values, resolve_dtype
+from jaxcon.core.model import build
 
 # Every physical value of a scene (lengths, masses, angles, size) may be a traced JAX value: scenes build their
 # arrays with jax.numpy, so `jax.grad` of a rollout with respect to an initial angle or a length goes through
@@ -24,7 +25,7 @@ def _value(owner, name, value, shape, *, positive=False):
     if np.shape(value) != tuple(shape):
         want = "a scalar" if shape == () else f"shape {tuple(shape)}"
         raise ValueError(f"{owner}: `{name}` must be {want}, got shape {np.shape(value)}")
-    _check_values(owner, name, value, positive=positive)
+    check_values(owner, name, value, positive=positive)
     return value
 
 
@@ -99,7 +100,7 @@ def cloth_edges(nx: int, ny: int):
     with 8 colours whose every colour is a strided box of the grid: horizontal edges split by column parity,
     vertical edges by row parity, and each diagonal direction by column parity when nx is even (by row
     parity when it is odd). With nx even, the model stores each row as its even columns then its odd ones
-    (see jaxcon._topology), and every colour, diagonals included, is then one box of unit-step row runs."""
+    (see jaxcon.core.topology), and every colour, diagonals included, is then one box of unit-step row runs."""
     idx = np.arange(nx * ny).reshape(ny, nx)
     groups = []
     for c0 in (0, 1):

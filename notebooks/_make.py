@@ -1,6 +1,7 @@
 """Generate notebooks/*.ipynb (nbformat 4, outputs stripped) from the cell sources below.
 
-    python notebooks/_make.py
+    python notebooks/_make.py --execute     # the committed notebooks: run at full size, outputs kept
+    python notebooks/_make.py               # sources only, outputs stripped
 
 Edit the cells here, not the .ipynb files. Each notebook reads JAXCON_NOTEBOOK_SMALL=1 to shrink its sizes
 (tests/test_notebooks.py runs them that way).
@@ -21,8 +22,13 @@ import numpy as np
 
 import jaxcon as jc
 
+from jaxcon.bench.timing import machine
+
 SMALL = os.environ.get("JAXCON_NOTEBOOK_SMALL") == "1"
-F64 = np.float64'''
+F64 = np.float64
+host = machine()
+print(f"jaxcon {jc.__version__}, jax {host['jax']} on {host['platform']} ({host['cpu']}, {host['cores']} cores), "
+      f"{'reduced' if SMALL else 'full'} size")'''
 
 NB01 = [
     ("md", "# 01 - Constraints: stiff springs vs multipliers\n\nA pendulum and a rope solved by stiff springs "
@@ -162,10 +168,10 @@ plt.tight_layout()'''),
 
 NB03 = [
     ("md", "# 03 - System identification\n\nFit rest lengths and the Baumgarte factor of a chain with "
-           "`jc.fit`, then look at how gradients grow with the horizon (see docs/notebooks.md)."),
+           "`jc.fit`, then look at how gradients grow with the horizon (see docs/fitting.md)."),
     ("code", SETUP + '''
-from jaxcon._fit import _tree_replace
-from jaxcon._gradgrowth import gradient_norms'''),
+from jaxcon.identification.fit import _tree_replace
+from jaxcon.identification.gradgrowth import gradient_norms'''),
     ("code", '''dt = 1 / 240
 n_links = 5 if SMALL else 12
 steps = 60 if SMALL else 240
@@ -239,12 +245,48 @@ def notebook(cells):
             "nbformat": 4, "nbformat_minor": 5}
 
 
-def main():
-    for name, cells in (("01_constraints", NB01), ("02_speed_vs_error", NB02),
-                        ("03_system_identification", NB03)):
-        nb = notebook(cells)
-        for i, c in enumerate(nb["cells"]):
-            c["id"] = f"{name[:2]}-{i:02d}"
+NOTEBOOKS = (("01_constraints", NB01), ("02_speed_vs_error", NB02), ("03_system_identification", NB03))
+
+
+def build(name, cells) -> dict:
+    nb = notebook(cells)
+    for i, c in enumerate(nb["cells"]):
+        c["id"] = f"{name[:2]}-{i:02d}"
+    return nb
+
+
+def execute(nb: dict, small: bool, timeout: int = 1800) -> dict:
+    """Run a notebook top to bottom in a fresh Jupyter kernel (nbclient), as a user would; figures are kept as
+    PNG outputs. `small` sets JAXCON_NOTEBOOK_SMALL=1 in the kernel's environment (reduced sizes)."""
+    import os
+
+    import nbclient
+    import nbformat
+
+    node = nbformat.reads(json.dumps(nb), as_version=4)
+    env = dict(os.environ, JAXCON_NOTEBOOK_SMALL="1" if small else "0")
+    env.pop("MPLBACKEND", None)                        # the kernel's inline backend draws the figures
+    # the kernel imports the jaxcon of this checkout (the one installed, when it was installed from here)
+    env["PYTHONPATH"] = os.pathsep.join([str(HERE.parent)] + [q for q in [env.get("PYTHONPATH")] if q])
+    client = nbclient.NotebookClient(node, timeout=timeout, kernel_name="python3",
+                                     resources={"metadata": {"path": str(HERE)}})
+    client.execute(env=env)          # raises nbclient.exceptions.CellExecutionError on the first failing cell
+    return json.loads(nbformat.writes(node))
+
+
+def main(argv=None):
+    import argparse
+
+    p = argparse.ArgumentParser(description="Write notebooks/*.ipynb from the cell sources in this file.")
+    p.add_argument("--execute", action="store_true",
+                   help="also run each notebook at full size in a Jupyter kernel and keep its outputs (needs the "
+                        "test extra: nbclient, ipykernel, matplotlib); this is how the committed notebooks are made")
+    args = p.parse_args(argv)
+    for name, cells in NOTEBOOKS:
+        nb = build(name, cells)
+        if args.execute:
+            print(f"executing {name} at full size ...", flush=True)
+            nb = execute(nb, small=False)
         (HERE / f"{name}.ipynb").write_text(json.dumps(nb, indent=1) + "\n")
 
 

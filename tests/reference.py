@@ -1,6 +1,7 @@
 """Independent references for the tests: planar pendulum chains in reduced (angle) coordinates, scipy DOP853.
 
-The implementation lives in `jaxcon._reference` (shared with `python -m jaxcon bench --speed-vs-error`)."""
+The implementation lives in `jaxcon.bench.references.scipy_ode` (shared with the speed-vs-error bench)."""
 from __future__ import annotations
 
-from jaxcon._reference import _chain_rhs, chain_positions, double_pendulum_positions  # noqa: F401
+from jaxcon.bench.references.scipy_ode import _chain_rhs, chain_positions, double_pendulum_positions  # noqa: F401
+

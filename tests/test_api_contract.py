@@ -7,7 +7,7 @@ import numpy as np
 import optax  # noqa: F401  (part of the contract's imports)
 
 import jaxcon as jc
-from jaxcon._cli import main
+from jaxcon.bench.cli import main
 
 
 def test_api_md_calls_work_as_written():
@@ -51,9 +51,21 @@ def test_api_md_calls_work_as_written():
 def test_demo_runs(capsys):
     assert main(["demo", "--small"]) == 0
     out = capsys.readouterr().out
-    for name in ("pendulum", "double_pendulum", "chain_20", "cloth_8x8", "compile s", "max viol", "E drift",
+    for name in ("pendulum", "double_pendulum", "chain_20_1000to1", "cloth_8x8", "compile s", "max viol", "E drift",
                  "system identification", "beta: true 0.2"):
         assert name in out
+    suited, compared = out.split("for comparison")
+    # each scene names the solver that suits it, and that solver holds the constraints
+    for scene, solver in (("pendulum", "RATTLE()"), ("chain_20_1000to1", "Direct(substeps=4)"),
+                          ("cloth_8x8", "XPBD(substeps=20)")):
+        row = next(line for line in suited.splitlines() if line.startswith(scene + " "))
+        assert solver in row, row
+        assert float(row.split()[-2]) < 0.05, row          # max viol
+    # plain PGS(10) on the 1000:1 chain is labelled as the failure it is
+    row = next(line for line in compared.splitlines() if line.startswith("chain_20_1000to1"))
+    assert "FAILS: stretched" in row, row
+    row = next(line for line in compared.splitlines() if line.startswith("pendulum "))
+    assert row.endswith("holds"), row
 
 
 def test_bench_writes_json(tmp_path, capsys):
@@ -86,7 +98,7 @@ def test_bench_writes_json(tmp_path, capsys):
 
 def test_bench_best_double_pendulum_row():
     """The bench's float64 row for the 1e-5 m target: RATTLE(3), dt 1/260 reaches it (accuracy, not timing)."""
-    from jaxcon._cli import _best_double_pendulum
+    from jaxcon.bench.suite import _best_double_pendulum
     row = _best_double_pendulum(1)
     assert row["dt"] == 1 / 260 and row["position_error_at_1s"] < 1e-5
     assert row["ms_per_sim_s_final_state_only"] > 0 and row["ms_per_sim_s_recording"] > 0
@@ -95,7 +107,7 @@ def test_bench_best_double_pendulum_row():
 def test_steal_fraction():
     """The bench's host-steal reading: the steal share of the CPU ticks between two /proc/stat readings, and
     None when a reading is missing or spans too few ticks to mean anything."""
-    from jaxcon._cli import _cpu_jiffies, steal_fraction
+    from jaxcon.bench.timing import _cpu_jiffies, steal_fraction
     assert steal_fraction((10, 1000), (40, 1200)) == 30 / 200
     assert steal_fraction((10, 1000), (10, 1100)) == 0.0
     assert steal_fraction((10, 1000), (12, 1010)) is None        # 10 ticks: too short to tell

@@ -59,7 +59,7 @@ def test_checkpoint_reduces_reverse_mode_memory():
 def test_steps_are_rematerialised_in_reverse_mode(monkeypatch):
     # each step is recomputed from its carry in the backward pass instead of storing its intermediates (the
     # per-colour frames, biases and every sweep's impulses): measured 107 kB against 476 kB stored
-    from jaxcon import _sim
+    from jaxcon.core import sim as _sim
     model, state = _setup()
     remat = _grad_temp_bytes(model, state, 400, 10, None)
     monkeypatch.setattr(_sim, "REMAT_STEPS", False)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxcon as jc
-from jaxcon import _sim
+from jaxcon.core import sim as _sim
 from reference import double_pendulum_positions
 
 G = 9.81
@@ -158,7 +158,7 @@ def _layout_tolerances(model, solver, traj, dt, c=64):
     x = np.asarray(traj.x)
     kappa = 1.0
     if isinstance(solver, jc.Direct):
-        from jaxcon._direct import _regularisation
+        from jaxcon.solvers.direct import _regularisation
         w = np.asarray(model.inv_mass)
         i, j = model.pairs.T
         reg = float(_regularisation(solver.regularisation, jnp.float64))
@@ -439,7 +439,7 @@ def test_implicit_differentiation_of_converged_multipliers():
 
 def test_diagnostics_keep_nan_in_large_maxima():
     """jaxlib 0.10.2's CPU max over 4096+ values skips NaN; the diagnostics must still report it."""
-    from jaxcon._diagnostics import nan_max
+    from jaxcon.diagnostics import nan_max
     a = np.ones((3, 5000), np.float32)
     a[1, 17] = np.nan
     out = np.asarray(nan_max(a, axis=-1))
@@ -459,7 +459,7 @@ def test_diagnostics_keep_nan_in_large_maxima():
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_guarded_length_has_finite_gradients_near_zero(dtype):
     """|d| from 0 to 1e-9, including lengths whose |d|^-3 overflows the dtype: finite values and gradients."""
-    from jaxcon import _layout as L
+    from jaxcon.core import layout as L
     for s in (0.0, 1e-30, 1e-18, 1e-15, 1e-12, 1e-10, 1e-9):
         d = jnp.asarray([s, 0.0, 0.0], dtype)
         f = lambda d: L.safe_length(d)[0] + L.safe_length(d)[1] * 1e-20 + jnp.sum(L.safe_norm(d)[1])

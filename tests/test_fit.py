@@ -8,7 +8,7 @@ import optax
 import pytest
 
 import jaxcon as jc
-from jaxcon._experiments import chain_identification
+from jaxcon.identification.experiments import chain_identification
 
 DT = 1 / 240
 
@@ -102,7 +102,7 @@ def test_defaults_fit_a_chain_released_from_a_violated_start():
     data, every 2nd step of 1 s observed with 1 mm noise. From the nominal lengths and beta 0.2, with default
     arguments: lengths within 1%, beta within 5%. The default grows the horizon (10, 20, ..., 160, 240 steps),
     with Levenberg-Marquardt (9 fitted scalars), compiling once."""
-    from jaxcon._experiments import violated_chain_identification
+    from jaxcon.identification.experiments import violated_chain_identification
     guess, state, true_L, obs, ss = violated_chain_identification()
     traces = []
     orig = jc.PGS._step

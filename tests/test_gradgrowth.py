@@ -1,12 +1,12 @@
-"""Gradient growth with horizon (jaxcon._gradgrowth)."""
+"""Gradient growth with horizon (jaxcon.identification.gradgrowth)."""
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jaxcon as jc
-from jaxcon._fit import _tree_replace
-from jaxcon._gradgrowth import gradient_norms, growth_rate
+from jaxcon.identification.fit import _tree_replace
+from jaxcon.identification.gradgrowth import gradient_norms, growth_rate
 
 DT = 1 / 240
 
@@ -36,7 +36,7 @@ def test_matches_jax_grad_of_rollout(cloth):
 def test_growth_with_and_without_warm_start():
     """5x5 cloth, PGS(5), dt 1/240, 50 -> 300 steps (float64). warm_start_factor is a leaf, so both runs share
     one compilation; factor 0 is the forward pass of warm_start=False. Measured: full warm start 3.9 -> 7.5e4,
-    no warm start 0.54 -> 5.9 (docs/notebooks.md)."""
+    no warm start 0.54 -> 5.9 (docs/fitting.md)."""
     model, state = jc.scenes.cloth(5, 5, dtype=np.float64)
     H = [50, 300]
     full = gradient_norms(model, state, jc.PGS(iterations=5), DT, H)
@@ -51,7 +51,7 @@ def test_growth_with_and_without_warm_start():
 def test_warm_start_gradient_false_does_not_bound_growth():
     """Stopping the gradient through the warm-start impulses gives a truncated Jacobian, and on a swinging
     cloth its product grows too (measured 0.54 -> 1.3e4 on 5x5 over 50 -> 300 steps; on 16x16 faster than
-    the full gradient, docs/notebooks.md). Guards the documented finding."""
+    the full gradient, docs/fitting.md). Guards the documented finding."""
     model, state = jc.scenes.cloth(5, 5, dtype=np.float64)
     g = gradient_norms(model, state, jc.PGS(iterations=5, warm_start_gradient=False), DT, [50, 300])
     assert np.all(np.isfinite(g))

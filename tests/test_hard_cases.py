@@ -6,7 +6,7 @@ divergence) and, if so, bounds on its largest relative violation over the run an
 (`jc.energy_drift`: (E_end - E_0) / max kinetic energy; > 0 means energy was added). To add a solver, append
 to SOLVERS and give its expectations in EXPECT (the test fails, listing measured values, for a missing one).
 
-`python tests/test_hard_cases.py` prints the measured table (the one in docs/solvers-a.md).
+`python tests/test_hard_cases.py` prints the measured table (the one in docs/hard-cases.md).
 """
 import functools
 
@@ -71,7 +71,7 @@ SURVIVES = "survives"
 DIVERGES = "diverges"
 # (solver, case) -> (outcome,) or (SURVIVES, max violation, |energy drift|, max energy gain (diagnose's
 # energy_gain)). Bounds are the measured values with a margin (about 2x, absolute floors for values near zero,
-# never above diagnose's limits); docs/solvers-a.md has the measurements.
+# never above diagnose's limits); docs/hard-cases.md has the measurements.
 S, D = SURVIVES, DIVERGES
 EXPECT = {
     # PGS(10 it.) and Jacobi(20 it.) stretch the long / mass-ratio chains past 100% (no NaN: a stretched
@@ -249,7 +249,7 @@ if __name__ == "__main__":
 def test_soak_100k_steps(solver):
     """100,000 steps (about 7 minutes of simulated time at 1/240 s) of the wild double pendulum: no
     divergence, violation stays small, energy does not grow. About 30 s for all seven solvers on the 2-core
-    CI machine; measured values in the README's soak table."""
+    CI machine; measured values in docs/hard-cases.md's soak table."""
     model, state = jc.scenes.double_pendulum(angles=(1.5708, 1.5708), dtype=np.float64)
     final, traj = jc.rollout(model, state, dict(SOLVERS)[solver], 1 / 240, 100_000, save_every=100)
     d = jc.diagnose(model, traj, state)

@@ -200,9 +200,9 @@ def test_solvers_take_traced_parameters_under_vmap():
 
 
 def test_plain_scatter_add_reference_is_the_same_pgs():
-    """The bench's gradient-compile reference (jaxcon._plain_pgs) computes what jc.PGS computes: same final state
+    """The bench's gradient-compile reference (jaxcon.bench.references.plain_pgs) computes what jc.PGS computes: same final state
     and gradient on a small cloth, so the compile-time comparison is like for like."""
-    from jaxcon._plain_pgs import plain_pgs_rollout
+    from jaxcon.bench.references.plain_pgs import plain_pgs_rollout
     model, state = jc.scenes.cloth(5, 4, dtype=np.float64)
     t = model.topology
 

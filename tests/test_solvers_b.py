@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import jaxcon as jc
-from jaxcon._direct import is_simple_chain
+from jaxcon.solvers.direct import is_simple_chain
 from reference import chain_positions, double_pendulum_positions
 
 G = 9.81
@@ -43,7 +43,7 @@ def test_reference_double_pendulum_keeps_lengths():
 
 
 # ---- double pendulum against scipy DOP853 -------------------------------------------------------------------
-# Bounds are ~1.5x the float64 errors measured at dt = 1/200 (see docs/solvers-b.md): they catch a wrong
+# Bounds are ~1.5x the float64 errors measured at dt = 1/200 (see docs/solvers.md): they catch a wrong
 # sign, a missing gravity half-kick or a lost order of accuracy.
 @pytest.mark.parametrize("solver, bound", [
     (jc.Direct(beta=0.2), 6e-3),

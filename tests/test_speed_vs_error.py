@@ -4,8 +4,8 @@ import json
 import math
 import os
 
-from jaxcon._speed_vs_error import SOLVERS, run
-from jaxcon._cli import main
+from jaxcon.bench.speed_vs_error import SOLVERS
+from jaxcon.bench.cli import main
 
 
 def _finite_numbers(row):

@@ -1,7 +1,7 @@
-"""jaxcon._throughput.batched_throughput: rows are consistent and the batch really holds different systems."""
+"""jaxcon.bench.throughput.batched_throughput: rows are consistent and the batch really holds different systems."""
 import numpy as np
 
-from jaxcon._throughput import _batch, batched_throughput
+from jaxcon.bench.throughput import _batch, batched_throughput
 
 
 def test_rows():

@@ -1,4 +1,5 @@
 """Bad input gets a clear error naming the argument, raised before tracing; tracers pass validation."""
+import argparse
 import re
 
 import jax
@@ -172,7 +173,7 @@ def test_recording_that_cannot_fit_in_memory_is_refused_before_compiling():
     with pytest.raises(ValueError, match="save_every"):
         jc.batched_rollout(model, batch, jc.PGS(), 1 / 240, 10 ** 12)
     # keeping only the final state needs no record: accepted (not run here)
-    jc._sim.check_record_memory("rollout", model, state, 10 ** 12, 10 ** 12)
+    jc.core.sim.check_record_memory("rollout", model, state, 10 ** 12, 10 ** 12)
 
 
 def test_batched_rollout_rejects_an_empty_batch():
@@ -248,10 +249,29 @@ def test_validation_lets_tracers_through():
     (["bench", "--repeats", "0"], "--repeats: must be an integer >= 1"),
     (["bench", "--repeats", "two"], "--repeats: must be an integer >= 1"),
     (["bench", "--out", "/no/such/folder/bench.json"], "does not exist or is not writable"),
+    ([], "choose a command: demo or bench"),
+    (["frob"], "invalid choice: 'frob'"),
+    (["demo", "--bogus"], "unrecognized arguments: --bogus"),
+    (["bench", "--speed-vs-error", "--out-dir", __file__], "--out-dir .*: not a writable folder"),
 ])
 def test_cli_refuses_bad_arguments_before_running(argv, match, capsys):
-    from jaxcon._cli import main
+    from jaxcon.bench.cli import main
     with pytest.raises(SystemExit) as exc:
         main(argv)
     assert exc.value.code == 2
-    assert re.search(match, capsys.readouterr().err)
+    err = capsys.readouterr().err
+    assert re.search(match, err), err
+    assert err.count("\n") == 1 and "Traceback" not in err and "usage:" not in err     # one line
+
+
+def test_cli_speaks_to_users():
+    from jaxcon.bench.cli import _parser
+    p = _parser()
+    assert "demo" in p.description and "bench" in p.description and "python -m jaxcon" not in p.description
+    sub = next(a for a in p._actions if isinstance(a, argparse._SubParsersAction))
+    assert set(sub.choices) == {"demo", "bench"}
+    for name, sp in sub.choices.items():
+        assert sp.description, name
+        for action in sp._actions:
+            assert action.help, f"{name} {action.option_strings} has no help text"
+    assert all(c.help for c in sub._choices_actions)

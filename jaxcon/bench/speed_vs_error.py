@@ -3,7 +3,7 @@ independent references versus wall time per simulated second (issue 3).
 
 Scenes (full mode; `--small` shrinks every one):
   double pendulum, mild (0.5, 0.5 rad) and hard (pi/2, pi/2) start, float64, 1 s: max |x - x_ref| over both bobs
-    and both coordinates at t = 1 s, x_ref from the reduced-coordinate ODE (`jaxcon._reference`);
+    and both coordinates at t = 1 s, x_ref from the reduced-coordinate ODE (`jaxcon.bench.references.scipy_ode`);
   chain(50, 5.0, 0.5, end_mass=10.0) (1000:1, released from horizontal), float32, 1 s: max link stretch
     |d - L| / L over all steps and the tip error at t = 1 s against the 50-angle reduced-coordinate ODE;
   cloth(32, 32) (two corners pinned), float32, 1 s: max particle position error at t = 1 s against a converged
@@ -23,18 +23,18 @@ import time
 import jax
 import numpy as np
 
-from . import _reference as ref
-from . import scenes
-from ._cli import compile_and_time, machine
-from ._diagnostics import energy_drift, nan_max, violation
-from ._direct import Direct
-from ._jacobi import Jacobi
-from ._penalty import Penalty
-from ._rattle import RATTLE
-from ._sim import rollout
-from ._softstep import SoftStep
-from ._solver import PGS
-from ._xpbd import XPBD
+from jaxcon import scenes
+from jaxcon.bench.references import scipy_ode as ref
+from jaxcon.bench.timing import compile_and_time, machine
+from jaxcon.core.sim import rollout
+from jaxcon.diagnostics import energy_drift, nan_max, violation
+from jaxcon.solvers.direct import Direct
+from jaxcon.solvers.jacobi import Jacobi
+from jaxcon.solvers.penalty import Penalty
+from jaxcon.solvers.pgs import PGS
+from jaxcon.solvers.rattle import RATTLE
+from jaxcon.solvers.softstep import SoftStep
+from jaxcon.solvers.xpbd import XPBD
 
 SOLVERS = ("PGS", "Jacobi", "XPBD", "Penalty", "Direct", "SoftStep", "RATTLE", "PGS-split", "Direct-split")
 # Section 7 of the method article (rows it has), plus the library's other solvers.
@@ -371,7 +371,7 @@ DIVERGED = 100.0  # m: an error above this is a blow-up, left out of the plots
 def _mujoco_points(small, scene_meta, log):
     """MuJoCo hinge models of the same pendulums and chain (when `mujoco` is installed): reference curves for
     the plots, kept apart from jaxcon's points (not in the method table or the cost budgets)."""
-    from . import _mujoco_ref as mj
+    from jaxcon.bench.references import mujoco as mj
     if not mj.available():
         print("  mujoco not installed: no MuJoCo reference curves (pip install mujoco)", flush=True)
         return []
@@ -431,7 +431,8 @@ def _table(result):
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for s in SOLVERS:
         cells = [METHOD[s][0], s] + [fmt(fc[sc][s]) for sc in scs] + \
-            [fmt(cost100.get(s)), "-" if s not in scal else f"{scal[s]:.2f}", fmt(drift[s]["energy_drift"]) if s in drift else "-", METHOD[s][1]]
+            [fmt(cost100.get(s)), "-" if s not in scal else f"{scal[s]:.2f}",
+             fmt(drift[s]["energy_drift"]) if s in drift else "-", METHOD[s][1]]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -7,9 +7,11 @@ from typing import Any
 import jax.numpy as jnp
 from jax import lax
 
-from . import _layout as L
-from ._pytree import pytree_dataclass, static_field
-from ._solver import Solver, _check_int, _check_scalar, clamp_ropes, frames
+from jaxcon.core import layout as L
+from jaxcon.core.checks import check_int, check_scalar
+from jaxcon.core.pytree import pytree_dataclass, static_field
+from jaxcon.core.system import Solver
+from jaxcon.solvers.common import clamp_ropes, frames
 
 # Sweep loops of at most this many iterations are unrolled (lets XLA fuse the small per-sweep ops; a few
 # times faster on small systems, same result).
@@ -48,8 +50,8 @@ class RATTLE(Solver):
     tolerance: Any = 1e-12
 
     def __post_init__(self):
-        _check_int("RATTLE", "iterations", self.iterations, 1)
-        _check_scalar("RATTLE", "tolerance", self.tolerance, 0.0)
+        check_int("RATTLE", "iterations", self.iterations, 1)
+        check_scalar("RATTLE", "tolerance", self.tolerance, 0.0)
 
     def _step(self, sys, x, v, lam, h):
         topo = sys.topology

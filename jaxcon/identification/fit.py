@@ -13,9 +13,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ._model import Model, State, _check_values, check_real
-from ._sim import _check_call, _rollout_jit
-from ._solver import Solver
+from jaxcon.core.checks import check_real, check_values
+from jaxcon.core.model import Model, State
+from jaxcon.core.sim import _check_call, _rollout_jit
+from jaxcon.core.system import Solver
 
 Array = Any
 
@@ -170,7 +171,7 @@ def _observations(model, state, observed, observed_particles, sample_steps) -> _
     batched = obs.ndim == 4
     if obs.ndim not in (3, 4):
         raise ValueError(f"fit: `observed` must have shape [S, k, dim] or [B, S, k, dim], got {obs.shape}")
-    _check_values("fit", "observed", observed)
+    check_values("fit", "observed", observed)
     if batched and np.ndim(state.x) != 3:
         raise ValueError("fit: batched `observed` [B, S, k, dim] needs a batch of initial states (state.x "
                          f"[B, n, dim]), got state.x {np.shape(state.x)}")
@@ -329,13 +330,7 @@ def fit(
     """
     _check_call("fit", model, _unbatched(state), solver, dt)
     _check_options(optimizer, learning_rate, continuity, tol, patience, steps)
-    if isinstance(params, str):
-        params = (params,)
-    params = tuple(params)
-    if not params:
-        raise ValueError("fit: `params` is empty: name at least one parameter to fit")
-    if len(set(params)) != len(params):
-        raise ValueError(f"fit: `params` names a parameter twice: {params}")
+    params = _param_names(params)
     ob = _observations(model, state, observed, observed_particles, sample_steps)
     stages = _schedule(horizon, ob.T)
     spec, u0 = _parameters(params, model, solver, state, dict(transforms or {}), dict(bounds or {}))
@@ -343,26 +338,43 @@ def fit(
                        _windows(window, ob.T), float(continuity))
     state_b = _as_batched_state(state, ob.batched)
     u0, lam_starts = problem.window_guess(u0, state_b, dt)
-    n_scalars = sum(int(np.size(v)) for v in jax.tree.leaves(u0))
-    use_lm = optimizer in _LM_NAMES or (optimizer in (None, "auto") and n_scalars <= LM_MAX_PARAMS)
-    if use_lm:
-        mu0 = jnp.asarray(1e-3, jnp.result_type(state.x))       # Levenberg-Marquardt damping
-        update, init = _lm_update(problem), lambda u: mu0
-    else:
-        opt = optax.adam(learning_rate) if optimizer in (None, "auto", "adam") else optimizer
-        opt = optax.with_extra_args_support(opt)     # plain transformations ignore value / value_fn
-        update, init = _optax_update(problem, opt), opt.init
+    update, init = _optimizer(optimizer, learning_rate, problem, u0, jnp.result_type(state.x))
     data = (ob.obs, state_b, lam_starts)
     best_u, history, horizons, reason, converged = _run_stages(update, init, u0, data, stages, steps, tol,
                                                              patience, progress)
     fitted = dict(problem.decode(best_u))
     m, s = _set(model, solver, fitted)
-    ws = None
-    if problem.n_win > 1:
-        x, v = best_u["__x"], best_u["__v"]
-        ws = State(x if ob.batched else x[0], v if ob.batched else v[0],
-                   lam_starts if ob.batched else lam_starts[0])
+    ws = _window_states(best_u, lam_starts, ob.batched) if problem.n_win > 1 else None
     return FitResult(m, s, fitted, np.asarray(history), len(history), converged, ws, reason, np.asarray(horizons))
+
+
+def _param_names(params) -> tuple:
+    if isinstance(params, str):
+        params = (params,)
+    params = tuple(params)
+    if not params:
+        raise ValueError("fit: `params` is empty: name at least one parameter to fit")
+    if len(set(params)) != len(params):
+        raise ValueError(f"fit: `params` names a parameter twice: {params}")
+    return params
+
+
+def _optimizer(optimizer, learning_rate, problem, u0, dtype):
+    """(update, init) of the chosen method: Levenberg-Marquardt for "lm" (or "auto" with at most
+    `LM_MAX_PARAMS` fitted scalars), else an optax transformation (Adam by default)."""
+    n_scalars = sum(int(np.size(v)) for v in jax.tree.leaves(u0))
+    if optimizer in _LM_NAMES or (optimizer in (None, "auto") and n_scalars <= LM_MAX_PARAMS):
+        mu0 = jnp.asarray(1e-3, dtype)       # Levenberg-Marquardt damping
+        return _lm_update(problem), lambda u: mu0
+    opt = optax.adam(learning_rate) if optimizer in (None, "auto", "adam") else optimizer
+    opt = optax.with_extra_args_support(opt)     # plain transformations ignore value / value_fn
+    return _optax_update(problem, opt), opt.init
+
+
+def _window_states(best_u, lam_starts, batched) -> State:
+    """The fitted start state of every window (multiple shooting)."""
+    x, v = best_u["__x"], best_u["__v"]
+    return State(x if batched else x[0], v if batched else v[0], lam_starts if batched else lam_starts[0])
 
 
 def _parameters(params, model, solver, state, transforms, bounds):

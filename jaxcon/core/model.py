@@ -3,40 +3,15 @@ from __future__ import annotations
 
 from typing import Any, Optional, Sequence
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _layout
-from ._pytree import concrete, pytree_dataclass, static_field
-from ._topology import Topology, check_colouring, greedy_colouring
+from jaxcon.core import layout as _layout
+from jaxcon.core.checks import check_real, check_shape, check_values, resolve_dtype
+from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
+from jaxcon.core.topology import Topology, check_colouring, greedy_colouring
 
 Array = Any
-
-
-def _check_shape(owner: str, name: str, value, shape: tuple) -> None:
-    got = tuple(np.shape(value))
-    if got != tuple(shape):
-        raise ValueError(f"{owner}: `{name}` must have shape {tuple(shape)}, got {got}")
-
-
-def _check_values(owner: str, name: str, value, *, nonneg: bool = False, positive: bool = False) -> None:
-    """Finite (and optionally >= 0 or > 0) check on values known now; tracers are skipped."""
-    a = concrete(value)
-    if a is None:
-        return
-    if a.dtype.kind not in "biuf":
-        raise TypeError(f"{owner}: `{name}` must be real numbers, got dtype {a.dtype}")
-    bad = ~np.isfinite(a)
-    if bad.any():
-        idx = np.argwhere(bad)[0].tolist()
-        raise ValueError(f"{owner}: `{name}` must be finite; entry {idx} is {a[tuple(idx)]}")
-    if nonneg and (a < 0).any():
-        idx = np.argwhere(a < 0)[0].tolist()
-        raise ValueError(f"{owner}: `{name}` must be >= 0; entry {idx} is {a[tuple(idx)]}")
-    if positive and (a <= 0).any():
-        idx = np.argwhere(a <= 0)[0].tolist()
-        raise ValueError(f"{owner}: `{name}` must be > 0; entry {idx} is {a[tuple(idx)]}")
 
 
 @pytree_dataclass
@@ -59,12 +34,12 @@ class Model:
         t = self.topology
         if not isinstance(t, Topology):
             raise TypeError(f"Model: `topology` must be a Topology, got {type(t).__name__}")
-        _check_shape("Model", "inv_mass", self.inv_mass, (t.n,))
-        _check_shape("Model", "rest_length", self.rest_length, (t.m,))
-        _check_shape("Model", "gravity", self.gravity, (t.dim,))
-        _check_values("Model", "inv_mass", self.inv_mass, nonneg=True)
-        _check_values("Model", "rest_length", self.rest_length, nonneg=True)
-        _check_values("Model", "gravity", self.gravity)
+        check_shape("Model", "inv_mass", self.inv_mass, (t.n,))
+        check_shape("Model", "rest_length", self.rest_length, (t.m,))
+        check_shape("Model", "gravity", self.gravity, (t.dim,))
+        check_values("Model", "inv_mass", self.inv_mass, nonneg=True)
+        check_values("Model", "rest_length", self.rest_length, nonneg=True)
+        check_values("Model", "gravity", self.gravity)
 
     # convenience, all static
     @property
@@ -90,7 +65,16 @@ class Model:
         return self.topology.is_rope
 
     def __repr__(self):
-        return f"Model({self.topology!r})"
+        """Particles (how many fixed, when the masses are concrete), constraints by kind, colours, dim, dtype."""
+        t = self.topology
+        plural = lambda k, word: f"{k} {word}{'' if k == 1 else 's'}"      # noqa: E731
+        w = concrete(self.inv_mass)
+        fixed = "" if w is None else f" ({int(np.sum(w == 0))} fixed)"
+        ropes = int(t.is_rope.sum())
+        kinds = ", ".join(plural(k, kind) for k, kind in ((t.m - ropes, "rod"), (ropes, "rope")) if k)
+        dtype = jnp.result_type(self.rest_length if t.m else self.inv_mass)
+        return (f"Model({plural(t.n, 'particle')}{fixed}, {plural(t.m, 'constraint')}"
+                f"{f' ({kinds})' if kinds else ''}, {plural(t.n_colours, 'colour')}, dim={t.dim}, dtype={dtype})")
 
 
 @pytree_dataclass
@@ -108,7 +92,8 @@ class State:
     lam: Array
 
     def __repr__(self):
-        return f"State(x={jnp.shape(self.x)}, v={jnp.shape(self.v)}, lam={jnp.shape(self.lam)})"
+        return (f"State(x={jnp.shape(self.x)}, v={jnp.shape(self.v)}, lam={jnp.shape(self.lam)}, "
+                f"dtype={jnp.result_type(self.x)})")
 
 
 @pytree_dataclass
@@ -131,44 +116,11 @@ def check_state(owner: str, model: Model, state: State) -> None:
                             "make states with jc.build or a scene, or wrap values in jnp.asarray")
         if not jnp.issubdtype(jnp.result_type(a), jnp.floating):
             raise TypeError(f"{owner}: `state.{name}` must hold floating-point numbers, got dtype {jnp.result_type(a)}")
-    _check_shape(owner, "state.x", state.x, (t.n, t.dim))
-    _check_shape(owner, "state.v", state.v, (t.n, t.dim))
-    _check_shape(owner, "state.lam", state.lam, (t.m,))
+    check_shape(owner, "state.x", state.x, (t.n, t.dim))
+    check_shape(owner, "state.v", state.v, (t.n, t.dim))
+    check_shape(owner, "state.lam", state.lam, (t.m,))
     for name in ("x", "v", "lam"):
-        _check_values(owner, f"state.{name}", getattr(state, name))
-
-
-def default_float() -> np.dtype:
-    """JAX's default float dtype: float64 when `jax_enable_x64` is on, float32 otherwise."""
-    return np.dtype(jnp.result_type(float))
-
-
-def resolve_dtype(owner: str, dtype, *inputs) -> np.dtype:
-    """The float dtype an array-building call uses: `dtype` when given (it must be a floating dtype), else the
-    promoted dtype of the floating-point arrays among `inputs` (so dtypes follow the inputs), else JAX's
-    default float dtype. The result is canonical for the current x64 setting."""
-    if dtype is not None:
-        try:
-            d = np.dtype(dtype)
-        except TypeError:
-            raise TypeError(f"{owner}: `dtype` must be a floating-point dtype, got {dtype!r}") from None
-        if not jnp.issubdtype(d, jnp.floating):
-            raise TypeError(f"{owner}: `dtype` must be a floating-point dtype (float32, float64), got {d}")
-        return np.dtype(jax.dtypes.canonicalize_dtype(d))
-    floats = [jnp.result_type(a) for a in inputs
-              if hasattr(a, "dtype") and jnp.issubdtype(jnp.result_type(a), jnp.floating)]
-    return np.dtype(jax.dtypes.canonicalize_dtype(jnp.result_type(*floats) if floats else default_float()))
-
-
-def check_real(owner: str, name: str, value) -> None:
-    """Refuse values that are not real numbers (strings, complex, bool, objects) by their dtype; works on tracers."""
-    try:
-        dt = jnp.result_type(value) if hasattr(value, "dtype") else np.asarray(value).dtype
-    except (TypeError, ValueError):
-        raise TypeError(f"{owner}: `{name}` must be real numbers, got {type(value).__name__}") from None
-    if dt.kind not in "iuf" and not jnp.issubdtype(dt, jnp.floating):
-        what = {"c": "complex", "b": "bool", "U": "str", "S": "bytes", "O": "object"}.get(dt.kind, str(dt))
-        raise TypeError(f"{owner}: `{name}` must be real numbers, got {what} values (dtype {dt})")
+        check_values(owner, f"state.{name}", getattr(state, name))
 
 
 def _fixed_mask(fixed, n: int) -> np.ndarray:
@@ -285,7 +237,7 @@ def build(
     n, dim = x.shape
     if n < 1:
         raise ValueError("build: `positions` must hold at least one particle")
-    _check_values("build", "positions", x)
+    check_values("build", "positions", x)
     is_fixed = _fixed_mask(fixed, n)
     inv_mass = _inverse_masses(masses, is_fixed, dtype)
 
@@ -307,16 +259,16 @@ def build(
             rest = _layout.safe_norm(x[j] - x[i], axis=-1)[0]
     else:
         check_real("build", "rest_lengths", rest_lengths)
-        _check_shape("build", "rest_lengths", rest_lengths, (m,))
-        _check_values("build", "rest_lengths", rest_lengths, nonneg=True)
+        check_shape("build", "rest_lengths", rest_lengths, (m,))
+        check_values("build", "rest_lengths", rest_lengths, nonneg=True)
         rest = jnp.asarray(rest_lengths).astype(dtype)
 
     if velocities is None:
         v = jnp.zeros_like(x)
     else:
         check_real("build", "velocities", velocities)
-        _check_shape("build", "velocities", velocities, (n, dim))
-        _check_values("build", "velocities", velocities)
+        check_shape("build", "velocities", velocities, (n, dim))
+        check_values("build", "velocities", velocities)
         v = jnp.asarray(velocities).astype(dtype)
 
     g = _gravity("build", gravity, dim, dtype)
@@ -333,7 +285,7 @@ def _inverse_masses(masses, is_fixed, dtype):
     if np.ndim(masses) not in (0, 1):
         raise ValueError(f"build: `masses` must be a scalar or have shape ({n},), got {np.shape(masses)}")
     m = jnp.broadcast_to(jnp.asarray(masses).astype(dtype), (n,)) if np.ndim(masses) == 0 else masses
-    _check_shape("build", "masses", m, (n,))
+    check_shape("build", "masses", m, (n,))
     m = jnp.asarray(m).astype(dtype)
     mc = concrete(masses)
     if mc is not None:
@@ -343,7 +295,8 @@ def _inverse_masses(masses, is_fixed, dtype):
             stored = inv.astype(dtype)
             bad = ~is_fixed & ~(np.isfinite(mc) & (mc > 0))
             tiny = np.finfo(dtype).tiny
-            unrepresentable = ~is_fixed & ~bad & ~(np.isfinite(stored) & (stored >= tiny) & np.isfinite(mc.astype(dtype)))
+            representable = np.isfinite(stored) & (stored >= tiny) & np.isfinite(mc.astype(dtype))
+            unrepresentable = ~is_fixed & ~bad & ~representable
         if bad.any():
             p = int(np.argmax(bad))
             raise ValueError(f"build: `masses` must be finite and > 0 for particles that are not in `fixed`; "
@@ -365,15 +318,15 @@ def _gravity(owner, gravity, dim, dtype):
         return jnp.zeros(dim, dtype).at[-1].set(-9.81)
     check_real(owner, "gravity", gravity)
     if np.ndim(gravity) == 0:
-        _check_values(owner, "gravity", gravity)
+        check_values(owner, "gravity", gravity)
         g = concrete(gravity)
         if g is not None and float(g) < 0:
             raise ValueError(
                 f"{owner}: a scalar `gravity` is a magnitude (m/s^2) pointing along the negative last axis and must "
                 f"be >= 0, got {float(g)}; for gravity along another direction pass a [{dim}] vector")
         return jnp.zeros(dim, dtype).at[-1].set(-jnp.asarray(gravity).astype(dtype))
-    _check_shape(owner, "gravity", gravity, (dim,))
-    _check_values(owner, "gravity", gravity)
+    check_shape(owner, "gravity", gravity, (dim,))
+    check_values(owner, "gravity", gravity)
     return jnp.asarray(gravity).astype(dtype)
 
 
@@ -381,7 +334,7 @@ def _colouring(colouring, i, j, n):
     if colouring is None:
         return greedy_colouring(i, j, n)
     colour = np.asarray(colouring)
-    _check_shape("build", "colouring", colour, (len(i),))
+    check_shape("build", "colouring", colour, (len(i),))
     if colour.dtype.kind not in "iu" or (colour < 0).any():
         raise ValueError("build: `colouring` must hold non-negative integers")
     check_colouring(i, j, colour, n)

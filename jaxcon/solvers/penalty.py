@@ -8,10 +8,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from . import _layout as L
-from ._pytree import concrete, pytree_dataclass, static_field
-from ._solver import Solver, _check_int, _check_scalar
-from ._substeps import substepped
+from jaxcon.core import layout as L
+from jaxcon.core.checks import check_int, check_scalar
+from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
+from jaxcon.core.substeps import substepped
+from jaxcon.core.system import Solver
 
 #: The spring tension is clipped to +- STRETCH_CLIP * stiffness * rest_length (constraints with rest length
 #: > 0). A stable run never comes near it (it is a 1000% stretch, ten times `jc.diagnose`'s violation limit);
@@ -52,9 +53,9 @@ class Penalty(Solver):
     substeps: int = static_field(default=1)
 
     def __post_init__(self):
-        _check_int("Penalty", "substeps", self.substeps, 1)
-        _check_scalar("Penalty", "stiffness", self.stiffness, 0.0, positive=True)
-        _check_scalar("Penalty", "damping", self.damping, 0.0)
+        check_int("Penalty", "substeps", self.substeps, 1)
+        check_scalar("Penalty", "stiffness", self.stiffness, 0.0, positive=True)
+        check_scalar("Penalty", "damping", self.damping, 0.0)
 
     def stability_limit(self, model) -> float:
         """A substep h below which the undamped springs of `model` are stable: 2 / omega_bound (s), with

@@ -24,7 +24,7 @@ from typing import Optional
 
 import numpy as np
 
-from ._pytree import StaticArray
+from jaxcon.core.pytree import StaticArray
 
 
 def greedy_colouring(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:

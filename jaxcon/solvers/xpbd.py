@@ -6,9 +6,11 @@ from typing import Any
 import jax.numpy as jnp
 from jax import lax
 
-from . import _layout as L
-from ._pytree import pytree_dataclass, static_field
-from ._solver import Solver, _check_int, _check_scalar, clamp_ropes
+from jaxcon.core import layout as L
+from jaxcon.core.checks import check_int, check_scalar
+from jaxcon.core.pytree import pytree_dataclass, static_field
+from jaxcon.core.system import Solver
+from jaxcon.solvers.common import clamp_ropes
 
 
 @pytree_dataclass
@@ -40,9 +42,9 @@ class XPBD(Solver):
     substeps: int = static_field(default=10)
 
     def __post_init__(self):
-        _check_int("XPBD", "iterations", self.iterations, 1)
-        _check_int("XPBD", "substeps", self.substeps, 1)
-        _check_scalar("XPBD", "compliance", self.compliance, 0.0)
+        check_int("XPBD", "iterations", self.iterations, 1)
+        check_int("XPBD", "substeps", self.substeps, 1)
+        check_scalar("XPBD", "compliance", self.compliance, 0.0)
 
     def _step(self, sys, x, v, lam, dt):
         topo = sys.topology

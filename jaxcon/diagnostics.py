@@ -1,22 +1,82 @@
-"""`diagnose`: per-step health of a trajectory (violation, energy) and a divergence flag.
-
-Works on the output of any solver, under jit and vmap (everything is array arithmetic, no Python branching on
-values).
-"""
+"""Diagnostics: constraint violation, energies and drift, and `diagnose`, a report on a recorded trajectory
+(violation, energy, impulses) that names what went wrong."""
 from __future__ import annotations
 
 from typing import Any, NamedTuple, Optional
 
 import jax.numpy as jnp
 
-from ._diagnostics import energy, kinetic_energy, nan_max, violation
-from ._model import Model, State, Trajectory
+from jaxcon.core.layout import safe_norm
+from jaxcon.core.model import Model, State, Trajectory
 
 Array = Any
+
+
+def nan_max(a, axis=None):
+    """jnp.max that returns NaN wherever the reduced values contain a NaN.
+
+    XLA semantics propagate NaN through max, but on CPU jaxlib 0.10.2 reduces large arrays (4096 values and
+    more) with a kernel that skips NaN: jnp.max of 4095 ones and a NaN returns 1.0, and a slice of NaN rows
+    returned -inf. Diagnostics must not turn a diverged run into a finite number, so they reduce with this."""
+    a = jnp.asarray(a)
+    return jnp.where(jnp.any(jnp.isnan(a), axis=axis), jnp.nan, jnp.max(a, axis=axis))
+
+
+def _masses(model: Model):
+    w = jnp.asarray(model.inv_mass)
+    free = w > 0
+    return jnp.where(free, 1 / jnp.where(free, w, 1), 0)
+
+
+def kinetic_energy(model: Model, v):
+    """Kinetic energy (J) of the free particles. v: [..., n, dim]."""
+    check_particles("kinetic_energy", model, "v", v)
+    return 0.5 * jnp.sum(_masses(model) * jnp.sum(v * v, -1), -1)
+
+
+def energy(model: Model, x, v):
+    """Total mechanical energy (J) of the free particles: kinetic + gravitational. x, v: [..., n, dim]."""
+    check_particles("energy", model, "x", x)
+    pe = -jnp.sum(_masses(model) * jnp.sum(x * model.gravity, -1), -1)
+    return kinetic_energy(model, v) + pe
+
+
+def energy_drift(model: Model, state, traj):
+    """(E_end - E_0) / max kinetic energy along the trajectory: the energy a rollout gained (> 0) or lost
+    (< 0), relative to the energy it exchanged. Fixed particles are excluded."""
+    e0 = energy(model, state.x, state.v)
+    e1 = energy(model, traj.x[-1], traj.v[-1])
+    ke = nan_max(kinetic_energy(model, traj.v), axis=0)
+    return (e1 - e0) / jnp.maximum(ke, jnp.finfo(ke.dtype).tiny)
+
+
+def check_particles(owner: str, model: Model, name: str, a) -> None:
+    """Raise unless `a` is [..., n, dim] for this model (before any computation: a wrong shape would otherwise
+    index or broadcast into a wrong answer)."""
+    t = model.topology
+    shape = tuple(jnp.shape(a))
+    if len(shape) < 2 or shape[-2:] != (t.n, t.dim):
+        raise ValueError(f"{owner}: `{name}` must have shape [..., {t.n}, {t.dim}] (particles, dim) for this model, "
+                         f"got {shape}")
+
+
+def violation(model: Model, x):
+    """Relative constraint violation [..., m]: |d - L| / L for rods, max(d - L, 0) / L for ropes (a slack rope
+    is not violated). Where L = 0 the absolute violation is returned. x: [..., n, dim]."""
+    check_particles("violation", model, "x", x)
+    t = model.topology
+    d, _ = safe_norm(x[..., t.j, :] - x[..., t.i, :], axis=-1)
+    err = d - model.rest_length
+    err = jnp.where(t.is_rope, jnp.maximum(err, 0), jnp.abs(err))
+    L = jnp.asarray(model.rest_length)
+    return err / jnp.where(L > 0, L, 1)
+
 
 #: A trajectory is diverged when some constraint is off its rest length by more than this fraction of it
 #: (``jc.violation`` > 1.0: a rod stretched to twice its length or collapsed to a point).
 VIOLATION_LIMIT = 1.0
+
+
 #: ... or when its total energy rose above the initial energy by more than this many energy scales, the scale
 #: being ``KE_0 + M |g| sum(L)`` (the initial kinetic energy plus the potential energy all free mass would
 #: release by falling the total rest length of the model), floored at the machine tiny.
@@ -58,7 +118,8 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
         raise TypeError(f"diagnose: `state0` must be a jaxcon State or None, got {type(state0).__name__}")
     t = model.topology
     if jnp.ndim(traj.x) != 3:
-        raise ValueError(f"diagnose: `traj.x` must be [steps, n, dim] (vmap diagnose over batches), got shape {jnp.shape(traj.x)}")
+        raise ValueError("diagnose: `traj.x` must be [steps, n, dim] (vmap diagnose over batches), got shape "
+                         f"{jnp.shape(traj.x)}")
     steps = jnp.shape(traj.x)[0]
     for name, want in (("x", (steps, t.n, t.dim)), ("v", (steps, t.n, t.dim)), ("lam", (steps, t.m))):
         got = tuple(jnp.shape(getattr(traj, name)))

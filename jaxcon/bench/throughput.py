@@ -7,11 +7,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import scenes
-from ._model import State
-from ._cli import compile_and_time
-from ._sim import _batched_jit, _rollout_jit
-from ._solver import PGS, Solver
+from jaxcon import scenes
+from jaxcon.bench.timing import compile_and_time
+from jaxcon.core.model import State
+from jaxcon.core.sim import _batched_jit, _rollout_jit
+from jaxcon.core.system import Solver
+from jaxcon.solvers.pgs import PGS
 
 
 def _batch(scene, batch, dtype):

@@ -4,9 +4,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from ._model import build
-from ._sim import rollout
-from ._solver import PGS
+from jaxcon.core.model import build
+from jaxcon.core.sim import rollout
+from jaxcon.solvers.pgs import PGS
 
 
 def chain_identification(n: int = 20, seed: int = 0, beta: float = 0.2, dt: float = 1 / 240, steps: int = 240,
@@ -45,7 +45,7 @@ def violated_chain_identification(n: int = 8, link: float = 0.25, seed: int = 0,
 
     Returns (guess model with the nominal rest lengths, state, true rest lengths, observed [S, n + 1, 2],
     sample_steps [S])."""
-    from .scenes import chain
+    from jaxcon.scenes import chain
     rng = np.random.default_rng(seed)
     model, state = chain(n, n * link, mass * n, angle=angle, dtype=dtype)
     true_L = link * (1 + rng.uniform(-0.1, 0.1, n))

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ._topology import Block, Topology
+from jaxcon.core.topology import Block, Topology
 
 
 # ---- particles ---------------------------------------------------------------------------------------------
@@ -185,5 +185,3 @@ def safe_reciprocal(a):
     """1/a where a > 0, else 0 (and a zero derivative there)."""
     ok = a > 0
     return jnp.where(ok, 1 / jnp.where(ok, a, 1), 0)
-
-

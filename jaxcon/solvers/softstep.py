@@ -7,10 +7,12 @@ from typing import Any
 import jax.numpy as jnp
 from jax import lax
 
-from . import _layout as L
-from ._pytree import pytree_dataclass, static_field
-from ._solver import Solver, _check_int, _check_scalar, apply_impulses, clamp_ropes, frames
-from ._substeps import substepped
+from jaxcon.core import layout as L
+from jaxcon.core.checks import check_int, check_scalar
+from jaxcon.core.pytree import pytree_dataclass, static_field
+from jaxcon.core.substeps import substepped
+from jaxcon.core.system import Solver
+from jaxcon.solvers.common import apply_impulses, clamp_ropes, frames
 
 
 def soft_coefficients(hertz, damping_ratio, h):
@@ -59,10 +61,10 @@ class SoftStep(Solver):
     relax_iterations: int = static_field(default=1)
 
     def __post_init__(self):
-        _check_int("SoftStep", "substeps", self.substeps, 1)
-        _check_int("SoftStep", "relax_iterations", self.relax_iterations, 0)
-        _check_scalar("SoftStep", "hertz", self.hertz, 0.0, positive=True)
-        _check_scalar("SoftStep", "damping_ratio", self.damping_ratio, 0.0)
+        check_int("SoftStep", "substeps", self.substeps, 1)
+        check_int("SoftStep", "relax_iterations", self.relax_iterations, 0)
+        check_scalar("SoftStep", "hertz", self.hertz, 0.0, positive=True)
+        check_scalar("SoftStep", "damping_ratio", self.damping_ratio, 0.0)
 
     def _step(self, sys, x, v, lam, dt):
         dtype = x.dtype
@@ -104,5 +106,3 @@ class SoftStep(Solver):
             return x, v, lam
 
         return substepped(substep, self.substeps, x, v, lam, dt)
-
-

@@ -20,9 +20,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._model import Model, State
-from ._sim import _check_call, _rollout_jit
-from ._solver import Solver
+from jaxcon.core.model import Model, State
+from jaxcon.core.sim import _check_call, _rollout_jit
+from jaxcon.core.system import Solver
 
 LOSSES = {
     "mean_x2": lambda x: jnp.mean(x ** 2),

@@ -9,10 +9,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from . import _layout as L
-from ._model import Model, State, Trajectory, _check_values, check_real, check_state
-from ._pytree import concrete
-from ._solver import Solver, System, _check_int
+from jaxcon.core import layout as L
+from jaxcon.core.checks import check_int, check_real, check_values
+from jaxcon.core.model import Model, State, Trajectory, check_state
+from jaxcon.core.pytree import concrete
+from jaxcon.core.system import Solver, System
 
 
 def _check_call(owner, model, state, solver, dt, steps=None):
@@ -23,7 +24,7 @@ def _check_call(owner, model, state, solver, dt, steps=None):
     check_state(owner, model, state)
     check_dt(owner, dt, _dtype(state), getattr(solver, "substeps", 1))
     if steps is not None:
-        _check_int(owner, "steps", steps, 1)
+        check_int(owner, "steps", steps, 1)
     warn = getattr(solver, "_check_stability", None)
     if warn is not None:
         warn(owner, model, dt)
@@ -93,7 +94,7 @@ def _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint=None, r
 
     # Reverse mode recomputes each step from its carry instead of storing the step's intermediates: a step
     # holds dozens of small per-colour arrays (frames, biases, warm start), and stacking each of them over the
-    # time loop made the gradient's program 2x larger and slower to compile (docs/solvers-a.md). A rollout
+    # time loop made the gradient's program 2x larger and slower to compile (docs/performance.md). A rollout
     # that is not differentiated is unaffected.
     step = jax.checkpoint(lambda carry: solver._step(sys, *carry, dt), prevent_cse=False,
                           policy=jax.checkpoint_policies.nothing_saveable) if remat else (
@@ -111,7 +112,7 @@ def _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint=None, r
         # The step's impulses are recorded as one flat array (block order), not one stacked output per colour
         # block: with ten stacked outputs per step, XLA:CPU's two worker threads took turns running the time
         # loop, and recording cost XPBD on the 64x64 cloth about 30% per step, none of it on one thread
-        # (NPROC=1 or taskset). Flat, the recording figure fell by 12% (docs/solvers-a.md).
+        # (NPROC=1 or taskset). Flat, the recording figure fell by 12% (docs/performance.md).
         return carry, (x, v, L.constraints_concat(t, lam))
 
     def records(carry, n):
@@ -201,11 +202,11 @@ def rollout(model: Model, state: State, solver: Solver, dt, steps: int, *, save_
       gradients are unchanged. sqrt(steps) is a good K. A last partial chunk is allowed.
     """
     _check_call("rollout", model, state, solver, dt, steps)
-    _check_int("rollout", "save_every", save_every, 1)
+    check_int("rollout", "save_every", save_every, 1)
     if steps % save_every:
         raise ValueError(f"rollout: `steps` ({steps}) must be a multiple of `save_every` ({save_every})")
     if checkpoint is not None:
-        _check_int("rollout", "checkpoint", checkpoint, 1)
+        check_int("rollout", "checkpoint", checkpoint, 1)
         if checkpoint % save_every:
             raise ValueError(
                 f"rollout: `checkpoint` ({checkpoint}) must be a multiple of `save_every` ({save_every})")
@@ -235,14 +236,14 @@ def batched_rollout(model: Model, states: State, solver: Solver, dt, steps: int,
         raise ValueError(f"batched_rollout: `states.x` must have shape [batch, n, dim], got {np.shape(states.x)}")
     if np.shape(states.x)[0] == 0:
         raise ValueError("batched_rollout: `states` holds an empty batch (0 initial states)")
-    _check_int("batched_rollout", "chunk", chunk, 1)
-    _check_int("batched_rollout", "save_every", save_every, 1)
+    check_int("batched_rollout", "chunk", chunk, 1)
+    check_int("batched_rollout", "save_every", save_every, 1)
     first = jax.tree.map(lambda a: a[0], states)
     _check_call("batched_rollout", model, first, solver, dt, steps)
     for name in ("x", "v", "lam"):
         if np.shape(getattr(states, name))[0] != np.shape(states.x)[0]:
             raise ValueError(f"batched_rollout: `states.{name}` has a different batch size than `states.x`")
-        _check_values("batched_rollout", f"states.{name}", getattr(states, name))
+        check_values("batched_rollout", f"states.{name}", getattr(states, name))
     if steps % save_every:
         raise ValueError(f"batched_rollout: `steps` ({steps}) must be a multiple of `save_every` ({save_every})")
     check_record_memory("batched_rollout", model, first, steps, save_every, batch=int(np.shape(states.x)[0]))

@@ -8,10 +8,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax.lax.linalg import tridiagonal_solve
 
-from . import _layout as L
-from ._pytree import pytree_dataclass, static_field
-from ._solver import Solver, _check_int, _check_scalar, check_stabilization
-from ._substeps import substepped
+from jaxcon.core import layout as L
+from jaxcon.core.checks import check_int, check_scalar
+from jaxcon.core.pytree import pytree_dataclass, static_field
+from jaxcon.core.substeps import substepped
+from jaxcon.core.system import Solver
+from jaxcon.solvers.common import check_stabilization
 
 _METHODS = ("auto", "dense", "tridiagonal")
 
@@ -82,9 +84,9 @@ class Direct(Solver):
 
     def __post_init__(self):
         check_stabilization("Direct", self.stabilization)
-        _check_scalar("Direct", "beta", self.beta, 0.0, 1.0)
-        _check_int("Direct", "substeps", self.substeps, 1)
-        _check_scalar("Direct", "regularisation", self.regularisation, 0.0, 1.0)
+        check_scalar("Direct", "beta", self.beta, 0.0, 1.0)
+        check_int("Direct", "substeps", self.substeps, 1)
+        check_scalar("Direct", "regularisation", self.regularisation, 0.0, 1.0)
         if self.method not in _METHODS:
             raise ValueError(f"Direct: `method` must be one of {_METHODS}, got {self.method!r}")
 

@@ -7,11 +7,20 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from . import _layout as L
-from ._pytree import pytree_dataclass, static_field
-from ._solver import (Solver, _check_bool, _check_int, _check_scalar, check_stabilization, clamp_ropes, frames,
-                      position_correction, pseudo_velocities, velocity_bias, warm_start)
-from ._substeps import substepped
+from jaxcon.core import layout as L
+from jaxcon.core.checks import check_bool, check_int, check_scalar
+from jaxcon.core.pytree import pytree_dataclass, static_field
+from jaxcon.core.substeps import substepped
+from jaxcon.core.system import Solver
+from jaxcon.solvers.common import (
+    check_stabilization,
+    clamp_ropes,
+    frames,
+    position_correction,
+    pseudo_velocities,
+    velocity_bias,
+    warm_start,
+)
 
 
 def max_degree(topo) -> int:
@@ -53,12 +62,12 @@ class Jacobi(Solver):
 
     def __post_init__(self):
         check_stabilization("Jacobi", self.stabilization)
-        _check_int("Jacobi", "iterations", self.iterations, 1)
-        _check_int("Jacobi", "substeps", self.substeps, 1)
-        _check_bool("Jacobi", "warm_start", self.warm_start)
-        _check_scalar("Jacobi", "beta", self.beta, 0.0, 1.0)
+        check_int("Jacobi", "iterations", self.iterations, 1)
+        check_int("Jacobi", "substeps", self.substeps, 1)
+        check_bool("Jacobi", "warm_start", self.warm_start)
+        check_scalar("Jacobi", "beta", self.beta, 0.0, 1.0)
         if self.relaxation is not None:
-            _check_scalar("Jacobi", "relaxation", self.relaxation, 0.0, 2.0, positive=True)
+            check_scalar("Jacobi", "relaxation", self.relaxation, 0.0, 2.0, positive=True)
 
     def _step(self, sys, x, v, lam, dt):
         topo = sys.topology

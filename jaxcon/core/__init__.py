@@ -1,0 +1,2 @@
+"""The physics core: the model and its static topology, the internal array layout, argument checks, and
+the stepping loops (`step`, `rollout`, `batched_rollout`) that every solver plugs into."""

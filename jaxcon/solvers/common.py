@@ -1,0 +1,131 @@
+"""Solver interface, the shared per-constraint geometry, and the PGS / sequential-impulse solver."""
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax.numpy as jnp
+from jax import lax
+
+from jaxcon.core import layout as L
+from jaxcon.core.system import System
+from jaxcon.core.topology import Topology
+
+Array = Any
+
+
+class Frame(NamedTuple):
+    """Geometry of one block of constraints at the start of a (sub)step. Arrays are [*block.shape] unless
+    noted; `n` is [dim, *block.shape] and points from the first endpoint to the second."""
+
+    n: Array
+    dist: Array
+    C: Array      # dist - rest
+    wi: Array
+    wj: Array
+    k: Array      # 1 / (J M^-1 J^T) = 1 / (wi + wj); 0 where undefined (both fixed, or coincident)
+
+
+def frames(sys: System, x) -> tuple:
+    """Per-block constraint geometry of positions `x` ([dim, *view])."""
+    out = []
+    for blk, rest in zip(sys.topology.blocks, sys.rest):
+        xi, xj = L.gather_pair(sys.topology, blk, x)
+        wi, wj = L.gather_pair(sys.topology, blk, sys.w)
+        wi, wj = wi[0], wj[0]
+        dist, n = L.safe_norm(xj - xi, axis=0)
+        k = L.safe_reciprocal(wi + wj) * (dist > 0).astype(dist.dtype)
+        out.append(Frame(n, dist, dist - rest, wi, wj, k))
+    return tuple(out)
+
+
+def clamp_ropes(blk, lam):
+    """Project accumulated impulses of a block onto lam >= 0 where the constraint is a rope."""
+    if blk.all_rope:
+        return jnp.maximum(lam, 0)
+    if blk.rope is not None:
+        return jnp.where(blk.rope.array, jnp.maximum(lam, 0), lam)
+    return lam
+
+
+def apply_impulses(sys: System, v, fr: tuple, lam: tuple):
+    """v + M^-1 J^T lam for every block (tension convention: lam > 0 pulls the endpoints together)."""
+    for blk, f, l in zip(sys.topology.blocks, fr, lam):
+        p = f.n * l
+        v = v + L.scatter_pair(sys.topology, blk, f.wi * p, -f.wj * p)
+    return v
+
+
+def velocity_bias(topo: Topology, fr: tuple, beta, h) -> tuple:
+    """Per-block velocity bias: (beta / h) C for rods and taut ropes, the speculative C / h for slack ropes (the
+    rope may close the gap within this (sub)step but no further)."""
+    out = []
+    for blk, f in zip(topo.blocks, fr):
+        b = beta / h * f.C
+        if blk.has_rope:
+            slack = jnp.where(f.C > 0, b, f.C / h)
+            b = slack if blk.all_rope else jnp.where(blk.rope.array, slack, b)
+        out.append(b)
+    return tuple(out)
+
+
+def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, factor=1.0, gradient: bool = True):
+    """Apply `factor` times the previous impulses (ropes clamped, undefined constraints dropped) to `v`.
+    Returns (v, lam): the velocities after the warm start and the accumulated impulses to iterate from."""
+    if not gradient:
+        lam_ws = lax.stop_gradient(lam_ws)
+    if not (isinstance(factor, (int, float)) and factor == 1):     # a plain 1 costs nothing
+        lam_ws = tuple(l * factor for l in lam_ws)
+    lam = tuple(clamp_ropes(blk, l) * (f.k > 0).astype(f.k.dtype) for blk, f, l in zip(sys.topology.blocks, fr, lam_ws))
+    return apply_impulses(sys, v, fr, lam), lam
+
+
+STABILIZATIONS = ("baumgarte", "split")
+
+
+def check_stabilization(owner, value) -> None:
+    if value not in STABILIZATIONS:
+        raise ValueError(f"{owner}: `stabilization` must be 'baumgarte' or 'split', got {value!r}")
+
+
+def position_correction(topo: Topology, fr: tuple, beta, h) -> tuple:
+    """Split impulses: per block (bias, k) of the pseudo-velocity solve J v_p = -(beta / h) C. Rods always take
+    part; a rope only while stretched (C > 0), with its pseudo-impulse clamped >= 0 like its impulse; a slack
+    rope gets k = 0 (no correction: a rope never pushes)."""
+    out = []
+    for blk, f in zip(topo.blocks, fr):
+        b, k = beta / h * f.C, f.k
+        if blk.has_rope:
+            stretched = f.C > 0
+            active = stretched if blk.all_rope else (stretched | ~blk.rope.array)
+            k = k * active.astype(k.dtype)
+        out.append((b, k))
+    return tuple(out)
+
+
+def pseudo_velocities(sys: System, fr: tuple, correction: tuple, iterations: int, jacobi_relaxation=None):
+    """Solve the split-impulse pseudo-velocity problem from v_p = 0: `iterations` Gauss-Seidel sweeps over the
+    colours (or Jacobi sweeps with the given relaxation), dlam_p = (n . (vp_j - vp_i) + bias) k, rope
+    pseudo-impulses clamped >= 0. Returns v_p [dim, *view]: it moves the positions of one (sub)step and is then
+    discarded, so the position correction adds no kinetic energy. Not warm-started."""
+    topo = sys.topology
+    vp0 = jnp.zeros((topo.dim,) + topo.view, fr[0].n.dtype)
+    lam0 = tuple(jnp.zeros_like(f.C) for f in fr)
+
+    def sweep(_, carry):
+        vp, lam = carry
+        lam = list(lam)
+        dv = jnp.zeros_like(vp)          # Jacobi: every block reads the same vp, the changes are summed
+        for c, (blk, f, (b, k)) in enumerate(zip(topo.blocks, fr, correction)):
+            ui, uj = L.gather_pair(topo, blk, vp)
+            step = (jnp.sum((uj - ui) * f.n, axis=0) + b) * k
+            new = clamp_ropes(blk, lam[c] + (step if jacobi_relaxation is None else jacobi_relaxation * step))
+            p = f.n * (new - lam[c])
+            lam[c] = new
+            d = L.scatter_pair(topo, blk, f.wi * p, -f.wj * p)
+            if jacobi_relaxation is None:
+                vp = vp + d
+            else:
+                dv = dv + d
+        return vp + dv, tuple(lam)
+
+    return lax.fori_loop(0, iterations, sweep, (vp0, lam0))[0]
