@@ -11,7 +11,8 @@ The public API is what this module exports (see docs/api.md). The package is lai
 """
 from jaxcon import scenes as scenes
 from jaxcon.core.model import Model as Model, State as State, Trajectory as Trajectory, build as build
-from jaxcon.core.sim import batched_rollout as batched_rollout, rollout as rollout, step as step
+from jaxcon.core.batch import batched_rollout as batched_rollout
+from jaxcon.core.sim import rollout as rollout, step as step
 from jaxcon.core.system import Solver as Solver
 from jaxcon.diagnostics import (
     Diagnosis as Diagnosis,

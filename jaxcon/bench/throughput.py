@@ -10,7 +10,9 @@ import numpy as np
 from jaxcon import scenes
 from jaxcon.bench.timing import compile_and_time
 from jaxcon.core.model import State
-from jaxcon.core.sim import _batched_jit, _rollout_jit
+from jaxcon.bench.references.batch_minor_pgs import chain_pgs_rollout
+from jaxcon.core import batch
+from jaxcon.core.sim import _rollout_jit
 from jaxcon.core.system import Solver
 from jaxcon.solvers.pgs import PGS
 
@@ -35,38 +37,54 @@ def _batch(scene, batch, dtype):
     return model, state
 
 
+MODES = ("vmap", "batched_rollout", "reference")
+
+
+def _timed_fn(mode, model, solver, dt, steps, chunk):
+    if mode == "vmap":
+        return jax.vmap(lambda s: _rollout_jit(model, s, solver, dt, steps, steps)[0].x)
+    if mode == "batched_rollout":
+        mesh = batch._mesh(None, None)
+        chunk = batch.default_chunk(mesh.devices.flat) if chunk is None else chunk
+        mesh = mesh if mesh.size > 1 else None
+        return lambda s: batch._batched_jit(model, s, solver, dt, steps, steps, chunk, mesh)[0].x
+    if mode == "reference":
+        w = np.asarray(model.inv_mass)
+        return lambda s: chain_pgs_rollout(s.x, s.v, s.lam, w, model.rest_length, model.gravity, solver.beta, dt,
+                                           steps, solver.iterations)[0]
+    raise ValueError(f"batched_throughput: unknown mode {mode!r} (one of {MODES})")
+
+
 def batched_throughput(batch_sizes: Sequence[int] = (1, 64, 1024, 16384), steps: int = 240,
                        scene: str = "double_pendulum", solver: Optional[Solver] = None, dt: float = 1 / 240,
-                       dtype=np.float32, repeats: int = 5, chunk: Optional[int] = None):
-    """Time `jax.jit(jax.vmap(rollout))` over batches of initial states (different initial angles for the
-    double pendulum, different initial vertical velocities for the 16x16 cloth).
+                       dtype=np.float32, repeats: int = 5, modes: Sequence[str] = MODES, chunk: Optional[int] = None):
+    """Time batched rollouts over batches of initial states (different initial angles for the double
+    pendulum, different initial vertical velocities for the 16x16 cloth), final state only, after compilation.
 
-    chunk: None times one `jax.vmap` over the whole batch; an int times `jc.batched_rollout` (vmap over chunks
-    of that many states, lax.map across chunks).
+    modes: "vmap" (`jax.jit(jax.vmap(rollout))`), "batched_rollout" (`jc.batched_rollout` with its defaults,
+    or `chunk`), "reference" (the plain batch-minor PGS of `bench.references.batch_minor_pgs`, double pendulum
+    and PGS only; skipped otherwise).
 
-    Only the final state is returned by the timed function (no per-step trajectory), so memory is
-    O(batch). Returns a list of dicts: batch, particles (moving, per system), compile_s (lower + compile),
-    run_s (median of `repeats` runs after compilation), particle_steps_per_s = batch * particles * steps /
-    run_s.
+    Returns a list of dicts: scene, batch, mode, devices, backend, particles (moving, per system), compile_s
+    (lower + compile), run_s (median of `repeats` runs), system_steps_per_s = batch * steps / run_s and
+    particle_steps_per_s.
     """
     solver = PGS() if solver is None else solver
     rows = []
     for b in batch_sizes:
         model, state = _batch(scene, int(b), dtype)
-        if chunk is None:
-            f = jax.vmap(lambda s: _rollout_jit(model, s, solver, dt, steps, steps)[0])
-        else:
-            f = lambda s: _batched_jit(model, s, solver, dt, steps, steps, min(chunk, int(b)))[0]  # noqa: E731
-        compile_s, run, _ = compile_and_time(f, state, repeats=repeats)
         n = int(np.sum(np.asarray(model.inv_mass) > 0))
-        rows.append(dict(scene=scene, batch=int(b), mode="vmap" if chunk is None else f"chunks of {chunk}",
-                         particles=n, steps=steps, compile_s=compile_s, run_s=run,
-                         particle_steps_per_s=b * n * steps / run))
+        for mode in modes:
+            if mode == "reference" and (scene != "double_pendulum" or type(solver) is not PGS):
+                continue
+            f = _timed_fn(mode, model, solver, dt, steps, chunk)
+            compile_s, run, _ = compile_and_time(f, state, repeats=repeats)
+            rows.append(dict(scene=scene, batch=int(b), mode=mode, devices=jax.local_device_count(),
+                             backend=jax.default_backend(), particles=n, steps=steps, compile_s=compile_s,
+                             run_s=run, system_steps_per_s=b * steps / run, particle_steps_per_s=b * n * steps / run))
     return rows
 
 
 if __name__ == "__main__":
     for r in batched_throughput():
-        print(r)
-    for r in batched_throughput((1, 64), scene="cloth"):
         print(r)

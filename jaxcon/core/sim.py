@@ -10,7 +10,7 @@ import numpy as np
 from jax import lax
 
 from jaxcon.core import layout as L
-from jaxcon.core.checks import check_int, check_real, check_values
+from jaxcon.core.checks import check_int, check_real
 from jaxcon.core.model import Model, State, Trajectory, check_state
 from jaxcon.core.pytree import concrete
 from jaxcon.core.system import Solver, System
@@ -86,12 +86,10 @@ def step(model: Model, state: State, solver: Solver, dt) -> State:
 REMAT_STEPS = True
 
 
-@functools.partial(jax.jit, static_argnames=("steps", "save_every", "checkpoint", "remat"))
-def _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint=None, remat=True):
-    sys, x, v, lam = _enter(model, state)
-    dt = jnp.asarray(dt, x.dtype)
-    t = model.topology
-
+def _time_loop(sys, solver, carry, dt, steps, save_every, checkpoint=None, remat=True):
+    """Run `steps` steps of `solver` from the internal carry (x, v, lam). Returns (carry, (xs, vs, lams)), the
+    records stacked over steps // save_every, lams flat in block order."""
+    t = sys.topology
     # Reverse mode recomputes each step from its carry instead of storing the step's intermediates: a step
     # holds dozens of small per-colour arrays (frames, biases, warm start), and stacking each of them over the
     # time loop made the gradient's program 2x larger and slower to compile (docs/performance.md). A rollout
@@ -118,24 +116,30 @@ def _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint=None, r
     def records(carry, n):
         return lax.scan(body, carry, length=n)
 
-    carry = (x, v, lam)
     n_rec = steps // save_every
     if checkpoint is None:
-        carry, recs = records(carry, n_rec)
-    else:
-        # Outer scan over chunks of `checkpoint` steps, each chunk rematerialised in the backward pass:
-        # reverse mode keeps the carry at every chunk boundary plus one chunk's residuals.
-        per = checkpoint // save_every
-        n_chunks, rest = divmod(n_rec, per)
-        chunk = jax.checkpoint(lambda c: records(c, per))
-        parts = []
-        if n_chunks:
-            carry, recs = lax.scan(lambda c, _: chunk(c), carry, length=n_chunks)
-            parts.append(jax.tree.map(lambda a: a.reshape((n_chunks * per,) + a.shape[2:]), recs))
-        if rest:
-            carry, recs = jax.checkpoint(lambda c: records(c, rest))(carry)
-            parts.append(recs)
-        recs = parts[0] if len(parts) == 1 else jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
+        return records(carry, n_rec)
+    # Outer scan over chunks of `checkpoint` steps, each chunk rematerialised in the backward pass: reverse mode
+    # keeps the carry at every chunk boundary plus one chunk's residuals.
+    per = checkpoint // save_every
+    n_chunks, rest = divmod(n_rec, per)
+    chunk = jax.checkpoint(lambda c: records(c, per))
+    parts = []
+    if n_chunks:
+        carry, recs = lax.scan(lambda c, _: chunk(c), carry, length=n_chunks)
+        parts.append(jax.tree.map(lambda a: a.reshape((n_chunks * per,) + a.shape[2:]), recs))
+    if rest:
+        carry, recs = jax.checkpoint(lambda c: records(c, rest))(carry)
+        parts.append(recs)
+    return carry, (parts[0] if len(parts) == 1 else jax.tree.map(lambda *a: jnp.concatenate(a), *parts))
+
+
+@functools.partial(jax.jit, static_argnames=("steps", "save_every", "checkpoint", "remat"))
+def _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint=None, remat=True):
+    sys, x, v, lam = _enter(model, state)
+    t = model.topology
+    carry, recs = _time_loop(sys, solver, (x, v, lam), jnp.asarray(dt, x.dtype), steps, save_every, checkpoint,
+                             remat)
     (x, v, lam), (xs, vs, lams) = carry, recs
     final = State(L.particles_out(t, x), L.particles_out(t, v), L.constraints_out(t, lam))
     traj = Trajectory(L.particles_out(t, xs), L.particles_out(t, vs), L.constraints_unpermute(t, lams))
@@ -214,37 +218,3 @@ def rollout(model: Model, state: State, solver: Solver, dt, steps: int, *, save_
             checkpoint = steps
     check_record_memory("rollout", model, state, steps, save_every)
     return _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint, REMAT_STEPS)
-
-
-@functools.partial(jax.jit, static_argnames=("steps", "save_every", "chunk"))
-def _batched_jit(model, states, solver, dt, steps, save_every, chunk):
-    return lax.map(lambda one: _rollout_jit(model, one, solver, dt, steps, save_every), states, batch_size=chunk)
-
-
-def batched_rollout(model: Model, states: State, solver: Solver, dt, steps: int, *, chunk: int = 1024,
-                    save_every: int = 1):
-    """`rollout` of a batch of initial states (x, v [B, n, dim], lam [B, m]) with one model and solver.
-
-    Runs `jax.vmap` over chunks of `chunk` states and `lax.map` across chunks. On CPU this is much faster than
-    one `jax.vmap` over a large batch: measured on a 2-core Xeon, vmap of PGS double pendulums runs at
-    ~1e7 particle-steps/s up to about 2000 systems and drops ~13x above that, while chunks of 1024 keep
-    ~1e7 at 16384 systems. Returns (finals, trajs) with a leading batch axis.
-    """
-    if not isinstance(states, State):
-        raise TypeError(f"batched_rollout: `states` must be a jaxcon State, got {type(states).__name__}")
-    if np.ndim(states.x) != 3:
-        raise ValueError(f"batched_rollout: `states.x` must have shape [batch, n, dim], got {np.shape(states.x)}")
-    if np.shape(states.x)[0] == 0:
-        raise ValueError("batched_rollout: `states` holds an empty batch (0 initial states)")
-    check_int("batched_rollout", "chunk", chunk, 1)
-    check_int("batched_rollout", "save_every", save_every, 1)
-    first = jax.tree.map(lambda a: a[0], states)
-    _check_call("batched_rollout", model, first, solver, dt, steps)
-    for name in ("x", "v", "lam"):
-        if np.shape(getattr(states, name))[0] != np.shape(states.x)[0]:
-            raise ValueError(f"batched_rollout: `states.{name}` has a different batch size than `states.x`")
-        check_values("batched_rollout", f"states.{name}", getattr(states, name))
-    if steps % save_every:
-        raise ValueError(f"batched_rollout: `steps` ({steps}) must be a multiple of `save_every` ({save_every})")
-    check_record_memory("batched_rollout", model, first, steps, save_every, batch=int(np.shape(states.x)[0]))
-    return _batched_jit(model, states, solver, dt, steps, save_every, min(chunk, int(np.shape(states.x)[0])))

@@ -12,6 +12,7 @@ import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxcon.core.checks import check_real, check_values
 from jaxcon.core.model import Model, State
@@ -339,13 +340,24 @@ def fit(
     state_b = _as_batched_state(state, ob.batched)
     u0, lam_starts = problem.window_guess(u0, state_b, dt)
     update, init = _optimizer(optimizer, learning_rate, problem, u0, jnp.result_type(state.x))
-    data = (ob.obs, state_b, lam_starts)
+    data = shard_batch((ob.obs, state_b, lam_starts), ob.obs.shape[0] if ob.batched else None)
     best_u, history, horizons, reason, converged = _run_stages(update, init, u0, data, stages, steps, tol,
                                                              patience, progress)
     fitted = dict(problem.decode(best_u))
     m, s = _set(model, solver, fitted)
     ws = _window_states(best_u, lam_starts, ob.batched) if problem.n_win > 1 else None
     return FitResult(m, s, fitted, np.asarray(history), len(history), converged, ws, reason, np.asarray(horizons))
+
+
+def shard_batch(data, batch):
+    """Batched fits: put every leaf of `data` whose leading axis is the batch (`batch` trajectories) on all local
+    devices, that axis sharded, so the jit-compiled loss and gradient run data-parallel (XLA sums the gradient
+    across devices). One device, no batch, or a batch that does not divide evenly: `data` as it is."""
+    devices = jax.local_devices()
+    if batch is None or len(devices) == 1 or batch % len(devices):
+        return data
+    sharding = NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch"))
+    return jax.tree.map(lambda a: jax.device_put(a, sharding) if jnp.ndim(a) and a.shape[0] == batch else a, data)
 
 
 def _param_names(params) -> tuple:

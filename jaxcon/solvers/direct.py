@@ -76,6 +76,10 @@ class Direct(Solver):
         x += h (v + v_p), and is discarded, so position correction adds no kinetic energy.
     """
 
+    #: assembles its matrices in user particle order, so `jc.batched_rollout` batches it with `jax.vmap`
+    batch_minor = False
+
+
     beta: Any = 0.2
     substeps: int = static_field(default=1)
     method: str = static_field(default="auto")

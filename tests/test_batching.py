@@ -1,0 +1,177 @@
+"""Batched rollouts: the batch-minor layout equals jax.vmap of rollout for every solver, gradients through it are
+exact, and the batch is sharded over every device (checked with 4 forced host devices in a subprocess)."""
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxcon as jc
+from jaxcon.core import batch
+
+SOLVERS = [jc.PGS(), jc.PGS(stabilization="split"), jc.Jacobi(), jc.XPBD(), jc.Penalty(substeps=30), jc.Direct(),
+           jc.SoftStep(), jc.RATTLE()]
+
+
+def _states(state, B, seed=1):
+    rng = np.random.default_rng(seed)
+    states = jax.tree.map(lambda a: jnp.broadcast_to(a, (B,) + a.shape) + 0, state)
+    return states.replace(v=states.v + 0.1 * rng.normal(size=states.v.shape))
+
+
+def _scenes():
+    rng = np.random.default_rng(0)
+    yield "cloth", jc.scenes.cloth(4, 4)        # strided blocks, particles reordered by column parity
+    yield "rope_chain", jc.scenes.chain(5, kind="rope")
+    # an irregular graph: gather blocks, rods and a rope
+    yield "graph", jc.build(rng.normal(size=(7, 3)), np.ones(7), rods=[(0, 3), (3, 5), (5, 1), (1, 6), (2, 4), (4, 0)],
+                            ropes=[(6, 2)], fixed=[0])
+
+
+@pytest.mark.parametrize("solver", SOLVERS, ids=lambda s: type(s).__name__ + getattr(s, "stabilization", "")[:5])
+def test_batched_rollout_equals_vmap_of_rollout(solver):
+    for name, (model, state) in _scenes():
+        if isinstance(solver, jc.Direct) and model.topology.has_ropes:
+            continue
+        states = _states(state, 5)
+        ref = jax.vmap(lambda s: jc.rollout(model, s, solver, 1 / 240, 12, save_every=3))(states)
+        for chunk in (None, 2):
+            got = jc.batched_rollout(model, states, solver, 1 / 240, 12, save_every=3, chunk=chunk)
+            # XPBD and Penalty reassociate a sum in the batch-minor layout: equal to rounding. Direct (batched with
+            # vmap) solves the over-constrained cloth's regularised, ill-conditioned system (condition ~1e8) with a
+            # batched LU whose rounding differs from the unbatched one.
+            tol = 1e-6 if isinstance(solver, jc.Direct) else 1e-9
+            for a, b in zip(jax.tree.leaves(ref), jax.tree.leaves(got)):
+                assert a.shape == b.shape and a.dtype == b.dtype
+                np.testing.assert_allclose(b, a, rtol=tol, atol=tol, err_msg=f"{name}, chunk {chunk}")
+
+
+def test_batch_minor_topology_is_a_batch_of_disjoint_copies():
+    model, _ = jc.scenes.cloth(4, 4)
+    t, B = model.topology, 3
+    tb = batch.batch_minor_topology(t, B)
+    assert tb.view == t.view + (B,) and tb.n == 16 * B and tb.m == t.m * B and tb.n_colours == t.n_colours
+    for b, bb in zip(t.blocks, tb.blocks):
+        assert bb.size == b.size * B and bb.strided == b.strided
+    # copy c of constraint k joins copy c of its particles
+    assert np.array_equal(tb.i.reshape(t.m, B), t.i[:, None] * B + np.arange(B))
+
+
+def test_gradient_through_batched_rollout_is_exact():
+    model, state = jc.scenes.cloth(4, 4)
+    states = _states(state, 4)
+
+    def loss(rest, beta, run):
+        final, tr = run(model.replace(rest_length=rest), jc.PGS(10, beta=beta))
+        return jnp.mean(tr.x ** 2) + jnp.mean(final.lam ** 2)
+
+    fast = lambda m, s: jc.batched_rollout(m, states, s, 1 / 240, 12)    # noqa: E731
+    ref = lambda m, s: jax.vmap(lambda o: jc.rollout(m, o, s, 1 / 240, 12))(states)     # noqa: E731
+    g_fast = jax.grad(loss, argnums=(0, 1))(model.rest_length, 0.2, fast)
+    g_ref = jax.grad(loss, argnums=(0, 1))(model.rest_length, 0.2, ref)
+    for a, b in zip(g_fast, g_ref):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-14)
+    # and against float64 central differences in beta
+    eps = 1e-6
+    fd = (loss(model.rest_length, 0.2 + eps, fast) - loss(model.rest_length, 0.2 - eps, fast)) / (2 * eps)
+    np.testing.assert_allclose(g_fast[1], fd, rtol=1e-6)
+
+
+def test_default_chunk_follows_the_backend():
+    class Dev:
+        def __init__(self, platform):
+            self.platform = platform
+    assert batch.default_chunk([Dev("cpu")]) == batch.CPU_CHUNK
+    assert batch.default_chunk([Dev("gpu"), Dev("gpu")]) is None      # never chunk a batch on an accelerator
+
+
+def test_batched_rollout_refuses_devices_and_mesh_together():
+    model, state = jc.scenes.pendulum()
+    states = _states(state, 2)
+    mesh = jax.sharding.Mesh(np.array(jax.devices()), ("batch",))
+    with pytest.raises(ValueError, match="`devices` or `mesh`"):
+        jc.batched_rollout(model, states, jc.PGS(), 1 / 240, 3, devices=jax.devices(), mesh=mesh)
+    with pytest.raises(TypeError, match="`mesh` must be a jax.sharding.Mesh"):
+        jc.batched_rollout(model, states, jc.PGS(), 1 / 240, 3, mesh="batch")
+
+
+SHARDED = textwrap.dedent("""
+    import json, os
+    os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp, numpy as np, jaxcon as jc
+    from jaxcon.identification.fit import shard_batch
+
+    out = {"devices": jax.local_device_count()}
+    model, state = jc.scenes.double_pendulum(angles=(0.5, 0.5))
+    for B in (8, 10):                       # 10 does not divide over 4 devices: padded, then cut
+        rng = np.random.default_rng(1)
+        states = jax.tree.map(lambda a: jnp.broadcast_to(a, (B,) + a.shape) + 0, state)
+        states = states.replace(v=states.v + 0.1 * rng.normal(size=states.v.shape))
+        for solver in (jc.PGS(), jc.Direct()):
+            one = jc.batched_rollout(model, states, solver, 1 / 240, 12, devices=jax.devices()[:1])
+            every = jc.batched_rollout(model, states, solver, 1 / 240, 12)
+            key = f"{B}_{type(solver).__name__}"
+            out[key + "_err"] = max(float(jnp.max(jnp.abs(a - b))) for a, b in
+                                    zip(jax.tree.leaves(one), jax.tree.leaves(every)))
+            out[key + "_spans"] = len(every[0].x.sharding.device_set)
+            out[key + "_shape"] = list(every[1].x.shape)
+    mesh = jax.sharding.Mesh(np.array(jax.devices()[:2]), ("batch",))
+    two = jc.batched_rollout(model, states, jc.PGS(), 1 / 240, 12, mesh=mesh)
+    out["mesh_spans"] = len(two[0].x.sharding.device_set)
+
+    # a batched fit runs data-parallel on every device and gives the single-device answer
+    chain, c0 = jc.scenes.chain(4, 1.0, 0.4, angle=0.8)
+    rng = np.random.default_rng(0)
+    cs = jax.tree.map(lambda a: jnp.broadcast_to(a, (4,) + a.shape) + 0, c0)
+    cs = cs.replace(v=cs.v + 0.3 * rng.normal(size=cs.v.shape))
+    true = chain.replace(rest_length=chain.rest_length * jnp.array([1.05, 0.95, 1.02, 0.98]))
+    _, tr = jc.batched_rollout(true, cs, jc.PGS(10), 1 / 240, 60)
+    res = jc.fit(chain, cs, jc.PGS(10), 1 / 240, tr.x, params=("rest_length",), progress=False)
+    out["fit"] = np.asarray(res.model.rest_length).tolist()
+    out["fit_data_spans"] = len(shard_batch((tr.x, cs), 4)[0].sharding.device_set)
+    print(json.dumps(out))
+""")
+
+
+@pytest.fixture(scope="module")
+def sharded():
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    res = subprocess.run([sys.executable, "-c", SHARDED], capture_output=True, text=True, env=env, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def test_batched_rollout_shards_the_batch_over_every_device(sharded):
+    assert sharded["devices"] == 4
+    for B in (8, 10):
+        for solver in ("PGS", "Direct"):
+            assert sharded[f"{B}_{solver}_err"] < 1e-12, sharded
+            assert sharded[f"{B}_{solver}_spans"] == 4
+            assert sharded[f"{B}_{solver}_shape"] == [B, 12, 3, 2]
+    assert sharded["mesh_spans"] == 2
+
+
+def test_batched_fit_runs_on_every_device_and_matches_one_device(sharded):
+    assert sharded["fit_data_spans"] == 4
+    model, _ = jc.scenes.chain(4, 1.0, 0.4, angle=0.8)
+    true = np.asarray(model.rest_length) * np.array([1.05, 0.95, 1.02, 0.98])
+    np.testing.assert_allclose(sharded["fit"], true, rtol=1e-6)
+
+
+def test_batch_minor_reference_is_the_same_pgs():
+    """The bench's reference line (a plain batch-minor PGS) computes what jc.PGS computes."""
+    from jaxcon.bench.references.batch_minor_pgs import chain_pgs_rollout
+    for model, state in (jc.scenes.double_pendulum(angles=(0.5, 0.5)), jc.scenes.chain(7, angle=0.7)):
+        states = _states(state, 4)
+        ref = jax.vmap(lambda s: jc.rollout(model, s, jc.PGS(10, beta=0.2), 1 / 240, 50, save_every=50)[0])(states)
+        x, v, lam = jax.jit(lambda s: chain_pgs_rollout(s.x, s.v, s.lam, np.asarray(model.inv_mass), model.rest_length,
+                                                        model.gravity, 0.2, 1 / 240, 50, 10))(states)
+        for a, b in ((x, ref.x), (v, ref.v), (lam, ref.lam)):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
