@@ -160,27 +160,30 @@ def _best_double_pendulum(repeats: int) -> dict:
 
 
 def batched(small: bool, repeats: int) -> list:
-    """Batched rollouts of many systems: jax.vmap of rollout, jc.batched_rollout, and the plain batch-minor
-    reference measured in the same run; system-steps (pendulum-steps, cloth-steps) per second."""
-    from jaxcon.bench.throughput import batched_throughput
+    """Batched rollouts of many systems on every backend found: jax.vmap of rollout, jc.batched_rollout (sharded
+    over the backend's devices), and the plain batch-minor reference measured in the same run; system-steps
+    (pendulum-steps, cloth-steps) per second."""
+    from jaxcon.bench.throughput import backends, batched_throughput
 
     steps = 24 if small else 240
     cases = [("double_pendulum", (1, 64) if small else (1, 1024, 16384)), ("cloth", (2,) if small else (64,))]
-    print(f"\nbatched rollouts over initial states, PGS(10), {steps} steps, float32, final state only; backend "
-          f"{jax.default_backend()}, {jax.local_device_count()} device(s). vmap: jax.vmap(jc.rollout); "
-          "batched_rollout: jc.batched_rollout (batch-minor); reference: plain batch-minor PGS")
-    print(f"{'scene':18s} {'batch':>6s} {'mode':>16s} {'compile s':>9s} {'run s':>9s} {'system-steps/s':>15s} "
-          f"{'vs reference':>12s}")
     rows = []
-    for scene, sizes in cases:
-        for b in sizes:
-            got = batched_throughput((b,), steps=steps, scene=scene, repeats=max(1, min(repeats, 3)))
-            ref = {r["mode"]: r["system_steps_per_s"] for r in got}.get("reference")
-            for r in got:
-                r["vs_reference"] = None if ref is None else r["system_steps_per_s"] / ref
-                name = "cloth_16x16" if scene == "cloth" else scene
-                vs = "" if ref is None else f"{r['vs_reference']:.2f}x"
-                print(f"{name:18s} {r['batch']:6d} {r['mode']:>16s} {r['compile_s']:9.2f} {r['run_s']:9.4f} "
-                      f"{r['system_steps_per_s']:15.3g} {vs:>12s}")
-                rows.append(r)
+    for backend in backends():
+        print(f"\nbatched rollouts over initial states, PGS(10), {steps} steps, float32, final state only; backend "
+              f"{backend}, {len(jax.local_devices(backend=backend))} device(s). vmap: jax.vmap(jc.rollout); "
+              "batched_rollout: jc.batched_rollout (batch-minor, sharded); reference: plain batch-minor PGS")
+        print(f"{'scene':18s} {'batch':>6s} {'mode':>16s} {'devices':>7s} {'compile s':>9s} {'run s':>9s} "
+              f"{'system-steps/s':>15s} {'vs reference':>12s}")
+        for scene, sizes in cases:
+            for b in sizes:
+                got = batched_throughput((b,), steps=steps, scene=scene, repeats=max(1, min(repeats, 3)),
+                                         backend=backend)
+                ref = {r["mode"]: r["system_steps_per_s"] for r in got}.get("reference")
+                for r in got:
+                    r["vs_reference"] = None if ref is None else r["system_steps_per_s"] / ref
+                    name = "cloth_16x16" if scene == "cloth" else scene
+                    vs = "" if ref is None else f"{r['vs_reference']:.2f}x"
+                    print(f"{name:18s} {r['batch']:6d} {r['mode']:>16s} {r['devices']:7d} {r['compile_s']:9.2f} "
+                          f"{r['run_s']:9.4f} {r['system_steps_per_s']:15.3g} {vs:>12s}")
+                    rows.append(r)
     return rows

@@ -40,11 +40,11 @@ def _batch(scene, batch, dtype):
 MODES = ("vmap", "batched_rollout", "reference")
 
 
-def _timed_fn(mode, model, solver, dt, steps, chunk):
+def _timed_fn(mode, model, solver, dt, steps, chunk, devices):
     if mode == "vmap":
         return jax.vmap(lambda s: _rollout_jit(model, s, solver, dt, steps, steps)[0].x)
     if mode == "batched_rollout":
-        mesh = batch._mesh(None, None)
+        mesh = batch._mesh(devices, None)
         chunk = batch.default_chunk(mesh.devices.flat) if chunk is None else chunk
         mesh = mesh if mesh.size > 1 else None
         return lambda s: batch._batched_jit(model, s, solver, dt, steps, steps, chunk, mesh)[0].x
@@ -57,7 +57,8 @@ def _timed_fn(mode, model, solver, dt, steps, chunk):
 
 def batched_throughput(batch_sizes: Sequence[int] = (1, 64, 1024, 16384), steps: int = 240,
                        scene: str = "double_pendulum", solver: Optional[Solver] = None, dt: float = 1 / 240,
-                       dtype=np.float32, repeats: int = 5, modes: Sequence[str] = MODES, chunk: Optional[int] = None):
+                       dtype=np.float32, repeats: int = 5, modes: Sequence[str] = MODES, chunk: Optional[int] = None,
+                       backend: Optional[str] = None):
     """Time batched rollouts over batches of initial states (different initial angles for the double
     pendulum, different initial vertical velocities for the 16x16 cloth), final state only, after compilation.
 
@@ -65,24 +66,42 @@ def batched_throughput(batch_sizes: Sequence[int] = (1, 64, 1024, 16384), steps:
     or `chunk`), "reference" (the plain batch-minor PGS of `bench.references.batch_minor_pgs`, double pendulum
     and PGS only; skipped otherwise).
 
+    backend: run on this backend's local devices ("cpu", "gpu", ...; default: JAX's default backend); vmap and
+    the reference run on its first device, `batched_rollout` shards over all of them.
+
     Returns a list of dicts: scene, batch, mode, devices, backend, particles (moving, per system), compile_s
     (lower + compile), run_s (median of `repeats` runs), system_steps_per_s = batch * steps / run_s and
     particle_steps_per_s.
     """
     solver = PGS() if solver is None else solver
+    devices = jax.local_devices(backend=backend)
     rows = []
     for b in batch_sizes:
-        model, state = _batch(scene, int(b), dtype)
-        n = int(np.sum(np.asarray(model.inv_mass) > 0))
-        for mode in modes:
-            if mode == "reference" and (scene != "double_pendulum" or type(solver) is not PGS):
-                continue
-            f = _timed_fn(mode, model, solver, dt, steps, chunk)
-            compile_s, run, _ = compile_and_time(f, state, repeats=repeats)
-            rows.append(dict(scene=scene, batch=int(b), mode=mode, devices=jax.local_device_count(),
-                             backend=jax.default_backend(), particles=n, steps=steps, compile_s=compile_s,
-                             run_s=run, system_steps_per_s=b * steps / run, particle_steps_per_s=b * n * steps / run))
+        with jax.default_device(devices[0]):
+            model, state = _batch(scene, int(b), dtype)
+            n = int(np.sum(np.asarray(model.inv_mass) > 0))
+            for mode in modes:
+                if mode == "reference" and (scene != "double_pendulum" or type(solver) is not PGS):
+                    continue
+                f = _timed_fn(mode, model, solver, dt, steps, chunk, devices)
+                compile_s, run, _ = compile_and_time(f, state, repeats=repeats)
+                rows.append(dict(scene=scene, batch=int(b), mode=mode, devices=len(devices) if mode ==
+                                 "batched_rollout" else 1, backend=devices[0].platform, particles=n, steps=steps,
+                                 compile_s=compile_s, run_s=run, system_steps_per_s=b * steps / run,
+                                 particle_steps_per_s=b * n * steps / run))
     return rows
+
+
+def backends() -> list:
+    """The backends JAX can run on here (cpu always; gpu, tpu where present)."""
+    found = []
+    for name in ("cpu", "gpu", "tpu"):
+        try:
+            if jax.local_devices(backend=name):
+                found.append(name)
+        except RuntimeError:
+            pass
+    return found
 
 
 if __name__ == "__main__":
