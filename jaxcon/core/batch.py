@@ -140,8 +140,8 @@ def system(model, tb: Topology, dtype, batch: int) -> System:
 
 
 # ---- batched rollouts ---------------------------------------------------------------------------------------
-#: Systems per chunk on CPU: the batch-minor arrays of a chunk stay in cache (double pendulums, PGS(10), 2-core
-#: AMD EPYC: 3.8e7 pendulum-steps/s at 1024 in one piece against 2.3e7 at 16384, docs/batching.md).
+#: Systems per chunk on CPU: the batch-minor arrays of a chunk stay in cache (16384 double pendulums, PGS(10),
+#: 2-core AMD EPYC: 3.1e7 pendulum-steps/s in pieces of 1024 against 2.1e7 in one piece, docs/batching.md).
 CPU_CHUNK = 1024
 
 
@@ -234,7 +234,7 @@ def batched_rollout(model: Model, states: State, solver: Solver, dt, steps: int,
 
     Args:
       chunk: systems per piece on each device. None (default): CPU_CHUNK (1024) on CPU, where pieces that fit
-        in cache run ~1.7x faster than one large piece, and no chunking on GPU or TPU.
+        in cache ran 1.5x faster than one large piece, and no chunking on GPU or TPU.
       save_every: as for `rollout`.
       devices: the devices to shard the batch over (default: all local devices); a batch that does not divide
         evenly is padded with copies of its last state, which are dropped from the results.
