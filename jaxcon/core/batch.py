@@ -121,12 +121,10 @@ def flat_blocks_out(t: Topology, flat, batch: int):
     blocks, start = [], 0
     for b in t.blocks:
         n = b.size * batch
-        blocks.append(flat[..., start: start + n].reshape(flat.shape[:-1] + ((b.size, batch) if not b.strided
-                                                                             else b.shape + (batch,))))
+        blocks.append(flat[..., start: start + n].reshape(flat.shape[:-1] + (b.shape + (batch,) if b.strided
+                                                                             else (n,))))
         start += n
-    segs = [jnp.moveaxis(a.reshape(a.shape[: a.ndim - (len(b.shape) + 1 if b.strided else 2)] + (b.size, batch)),
-                         -1, -2) for b, a in zip(t.blocks, blocks)]
-    return jnp.take(jnp.concatenate(segs, axis=-1), t.inv_perm, axis=-1)
+    return constraints_out(t, blocks, batch)
 
 
 def system(model, tb: Topology, dtype, batch: int) -> System:
