@@ -114,6 +114,9 @@ def _time_loop(sys, solver, carry, dt, steps, save_every, checkpoint=None, remat
         return carry, (x, v, L.constraints_concat(t, lam))
 
     def records(carry, n):
+        if n == 1:          # one record (the final state): no outer loop around the steps
+            carry, rec = body(carry, None)
+            return carry, jax.tree.map(lambda a: a[None], rec)
         return lax.scan(body, carry, length=n)
 
     n_rec = steps // save_every
