@@ -44,10 +44,8 @@ def _timed_fn(mode, model, solver, dt, steps, chunk, devices):
     if mode == "vmap":
         return jax.vmap(lambda s: _rollout_jit(model, s, solver, dt, steps, steps)[0].x)
     if mode == "batched_rollout":
-        mesh = batch._mesh(devices, None)
-        chunk = batch.default_chunk(mesh.devices.flat) if chunk is None else chunk
-        mesh = mesh if mesh.size > 1 else None
-        return lambda s: batch._batched_jit(model, s, solver, dt, steps, steps, chunk, mesh)[0].x
+        return lambda s: batch.batched_rollout(model, s, solver, dt, steps, save_every=steps, chunk=chunk,
+                                               devices=devices)[0].x
     if mode == "reference":
         w = np.asarray(model.inv_mass)
         return lambda s: chain_pgs_rollout(s.x, s.v, s.lam, w, model.rest_length, model.gravity, solver.beta, dt,
