@@ -7,7 +7,7 @@ import jax
 import numpy as np
 
 from jaxcon import scenes
-from jaxcon.core.sim import rollout
+from jaxcon.core.sim import _rollout_jit, rollout
 from jaxcon.solvers.pgs import PGS
 
 
@@ -21,8 +21,12 @@ def gradient_compile(small: bool, repeats: int) -> dict:
     model, state = scenes.cloth(n, n, dtype=np.float32)
     t = model.topology
 
-    def jaxcon_loss(rest):
-        final, _ = rollout(model.replace(rest_length=rest), state, PGS(it, beta=0.2), dt, steps, save_every=steps)
+    def jaxcon_loss(rest, stored=False):
+        m, solver = model.replace(rest_length=rest), PGS(it, beta=0.2)
+        if stored:      # every step's intermediates stored instead of recomputed: the program before that change
+            final, _ = _rollout_jit(m, state, solver, dt, steps, steps, None, False)
+        else:           # what users get: steps rematerialised in reverse mode
+            final, _ = rollout(m, state, solver, dt, steps, save_every=steps)
         return jax.numpy.mean(final.x[..., 2] ** 2)
 
     def plain_loss(rest):
@@ -30,20 +34,13 @@ def gradient_compile(small: bool, repeats: int) -> dict:
                                     model.gravity, 0.2, dt, steps, it)
         return jax.numpy.mean(x[..., 2] ** 2)
 
-    from jaxcon.core import sim as _sim
-
-    def variant(name):
-        # jaxcon: steps rematerialised in reverse mode (the library's default); jaxcon_stored: every step's
-        # intermediates stored (the program before that change), to show what the default trades
-        _sim.REMAT_STEPS = name != "jaxcon_stored"
-        return plain_loss if name == "plain" else jaxcon_loss
+    losses = {"jaxcon": jaxcon_loss, "plain": plain_loss, "jaxcon_stored": lambda r: jaxcon_loss(r, stored=True)}
 
     row = {"case": f"cloth_{n}x{n}", "steps": steps, "solver": f"PGS({it})", "dtype": "float32"}
     names = ("jaxcon", "plain") if small else ("jaxcon", "plain", "jaxcon_stored")
     for _ in range(1 if small else 2):
         for name in names:
-            fn = variant(name)
-            g = jax.jit(jax.grad(fn))
+            g = jax.jit(jax.grad(losses[name]))
             t0 = time.perf_counter()
             lowered = g.lower(model.rest_length)
             t1 = time.perf_counter()
@@ -58,7 +55,6 @@ def gradient_compile(small: bool, repeats: int) -> dict:
             for key, val in (("trace_s", t1 - t0), ("compile_s", t2 - t1), ("run_s", float(np.median(runs)))):
                 row.setdefault(f"{name}_{key}", []).append(val)
             row[f"{name}_stablehlo_ops"] = lowered.as_text().count(" = ")
-    _sim.REMAT_STEPS = True
     for key in [k for k in row if k.endswith("_s")]:
         row[key] = float(np.min(row[key]))        # the quieter of the alternating rounds
     total = {k: row[f"{k}_trace_s"] + row[f"{k}_compile_s"] for k in ("jaxcon", "plain")}

@@ -81,11 +81,6 @@ def step(model: Model, state: State, solver: Solver, dt) -> State:
     return _step_jit(model, state, solver, dt)
 
 
-#: Rematerialise every step in reverse mode (see `_rollout_jit`). A module flag so the bench can compare both
-#: programs; `rollout` reads it at each call and passes it as a static argument.
-REMAT_STEPS = True
-
-
 def _time_loop(sys, solver, carry, dt, steps, save_every, checkpoint=None, remat=True):
     """Run `steps` steps of `solver` from the internal carry (x, v, lam). Returns (carry, (xs, vs, lams)), the
     records stacked over steps // save_every, lams flat in block order."""
@@ -220,4 +215,4 @@ def rollout(model: Model, state: State, solver: Solver, dt, steps: int, *, save_
         if checkpoint >= steps:
             checkpoint = steps
     check_record_memory("rollout", model, state, steps, save_every)
-    return _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint, REMAT_STEPS)
+    return _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint)
