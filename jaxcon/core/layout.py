@@ -4,6 +4,7 @@ These are the building blocks every solver uses; none of them loops over particl
 """
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
@@ -143,6 +144,7 @@ def scatter_pair(topo: Topology, block: Block, p_i, p_j):
 
 
 # ---- guarded geometry --------------------------------------------------------------------------------------
+@jax.custom_jvp
 def dot0(a, b):
     """Sum of a * b over the leading (dim) axis, written out component by component.
 
@@ -154,6 +156,13 @@ def dot0(a, b):
     for k in range(1, a.shape[0]):
         out = out + a[k] * b[k]
     return out
+
+
+@dot0.defjvp
+def _dot0_jvp(primals, tangents):
+    a, b = primals
+    da, db = tangents
+    return dot0(a, b), jnp.sum(da * b + a * db, axis=0)
 
 
 def min_length2(dtype):
