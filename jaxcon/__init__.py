@@ -2,11 +2,13 @@
 
 The public API is what this module exports (see docs/api.md). The package is laid out as:
 
-  core/            the model, its static topology and internal layout, argument checks, step / rollout loops
-  solvers/         one module per solver (PGS, Jacobi, Direct, Penalty, XPBD, SoftStep, RATTLE)
+  core/            the model, its static topology and internal layout, contact topology, argument checks,
+                   step / rollout loops
+  solvers/         one module per solver (PGS, Jacobi, Direct, Penalty, XPBD, SoftStep, RATTLE), and contact.py
+                   (contacts as unilateral velocity constraints)
   identification/  fitting physical parameters to observed motion (`fit`)
-  diagnostics.py   violation, energies, drift and `diagnose`
-  scenes.py        ready-made scenes (pendulums, chains, cloth)
+  diagnostics.py   violation, penetration, energies, drift and `diagnose`
+  scenes.py        ready-made scenes (pendulums, chains, cloth; billiards, drape, falling chain)
   bench/           the command line, benchmarks and their independent references (not library API)
 """
 from jaxcon import scenes as scenes
@@ -20,6 +22,7 @@ from jaxcon.diagnostics import (
     energy as energy,
     energy_drift as energy_drift,
     kinetic_energy as kinetic_energy,
+    penetration as penetration,
     violation as violation,
 )
 from jaxcon.identification.fit import FitResult as FitResult, fit as fit

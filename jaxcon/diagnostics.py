@@ -72,6 +72,29 @@ def violation(model: Model, x):
     return err / jnp.where(L > 0, L, 1)
 
 
+def penetration(model: Model, x):
+    """Overlap depth (m, >= 0) of every contact [..., k], in the order of `State.contact_n`: planes
+    (max(offset + r - n . x, 0)), spheres (max(R + r - |x - c|, 0)), then pairs (max(r_i + r_j - |x_j - x_i|, 0)).
+    [..., 0] for a model without contacts. x: [..., n, dim]."""
+    check_particles("penetration", model, "x", x)
+    c = model.contact
+    x = jnp.asarray(x)
+    if c is None:
+        return jnp.zeros(x.shape[:-2] + (0,), x.dtype)
+    r = jnp.asarray(model.radius, x.dtype)
+    parts = []
+    for p in range(c.n_planes):
+        parts.append(model.plane_offset[p] + r - jnp.sum(x * model.plane_normal[p], -1))
+    for q in range(c.n_spheres):
+        dist, _ = safe_norm(x - model.sphere_centre[q], axis=-1)
+        parts.append(model.sphere_radius[q] + r - dist)
+    if c.n_pairs:
+        i, j = c.pairs.array[:, 0], c.pairs.array[:, 1]
+        dist, _ = safe_norm(x[..., j, :] - x[..., i, :], axis=-1)
+        parts.append(r[i] + r[j] - dist)
+    return jnp.maximum(jnp.concatenate(parts, -1), 0)
+
+
 #: A trajectory is diverged when some constraint is off its rest length by more than this fraction of it
 #: (``jc.violation`` > 1.0: a rod stretched to twice its length or collapsed to a point).
 VIOLATION_LIMIT = 1.0
@@ -92,6 +115,7 @@ class Diagnosis(NamedTuple):
       bad:         [steps] bool, the step is non-finite, over VIOLATION_LIMIT or over ENERGY_LIMIT.
       diverged:    bool, some step is bad.
       first_bad:   int, index of the first bad step, or -1.
+      penetration: [steps] deepest contact overlap (m) of each step (``jc.penetration``); 0 without contacts.
     """
 
     violation: Array
@@ -100,6 +124,7 @@ class Diagnosis(NamedTuple):
     bad: Array
     diverged: Array
     first_bad: Array
+    penetration: Array = None
 
 
 def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> Diagnosis:
@@ -133,7 +158,7 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
             if got != want:
                 raise ValueError(f"diagnose: `state0.{name}` has shape {got}, this model needs {want}")
     x, v = traj.x, traj.v
-    viol = nan_max(violation(model, x), axis=-1)
+    viol = nan_max(violation(model, x), axis=-1) if t.m else jnp.zeros(x.shape[:1], x.dtype)
     e = energy(model, x, v)
     x0, v0 = (x[0], v[0]) if state0 is None else (state0.x, state0.v)
     e0 = energy(model, x0, v0)
@@ -141,7 +166,10 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
     free = w > 0
     mass = jnp.sum(jnp.where(free, 1 / jnp.where(free, w, 1), 0))
     ke0 = kinetic_energy(model, v0)
-    scale = ke0 + mass * jnp.linalg.norm(model.gravity) * jnp.sum(model.rest_length)
+    # With contacts, particles may fall without any constraint: the height scale is also the initial extent.
+    extent = 0 if model.contact is None else jnp.linalg.norm(jnp.max(x0, 0) - jnp.min(x0, 0)) + jnp.max(
+        jnp.abs(x0))
+    scale = ke0 + mass * jnp.linalg.norm(model.gravity) * (jnp.sum(model.rest_length) + extent)
     scale = jnp.maximum(scale, jnp.finfo(jnp.result_type(scale)).tiny)
     gain = (e - e0) / scale
     finite = (jnp.all(jnp.isfinite(x), axis=(-1, -2)) & jnp.all(jnp.isfinite(v), axis=(-1, -2))
@@ -149,4 +177,6 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
     ok = finite & (viol <= VIOLATION_LIMIT) & (gain <= ENERGY_LIMIT)
     bad = ~ok
     first = jnp.where(jnp.any(bad), jnp.argmax(bad), -1)
-    return Diagnosis(viol, e, gain, bad, jnp.any(bad), first)
+    pen = penetration(model, x)
+    pen = jnp.max(pen, -1) if pen.shape[-1] else jnp.zeros(x.shape[:1], x.dtype)
+    return Diagnosis(viol, e, gain, bad, jnp.any(bad), first, pen)

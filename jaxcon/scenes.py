@@ -143,3 +143,78 @@ def cloth(nx: int = 32, ny: int = 32, size: float = 1.0, mass: float = 1.0, *, d
     masses = jnp.full(nx * ny, jnp.asarray(mass).astype(dtype) / (nx * ny))
     return build(x, masses, rods=pairs, fixed=[0, nx - 1], gravity=gravity, colouring=colour,
                  grid_shape=(ny, nx))
+
+
+# ---- contact scenes ---------------------------------------------------------------------------------------------
+#: Regulation pool: ball diameter 57.15 mm and mass 170 g; a 9-foot table's playing surface, 2.54 m by 1.27 m.
+BALL_RADIUS = 0.028575
+BALL_MASS = 0.17
+TABLE = (2.54, 1.27)
+
+
+def _count(owner, name, value, minimum):
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{owner}: `{name}` must be an int >= {minimum}, got {value!r}")
+
+
+def billiards(speed: float = 10.0, rows: int = 5, *, angle: float = 0.0, restitution: float = 0.95,
+              friction: float = 0.05, gap: float = 1e-4, dtype=None):
+    """A 2-D break, seen from above: a triangle of `rows` rows of balls (15 for 5 rows) racked with its apex on
+    the foot spot, and the cue ball (particle 0) on the head spot moving at `speed` m/s towards the apex,
+    `angle` rad off the long axis. Regulation radius and mass; the four cushions are planes; no gravity in the
+    table's plane and no rolling resistance (a table without friction: momentum is conserved until a cushion
+    is hit). Racked balls are `gap` m apart. `restitution` and `friction` (ball-ball and ball-cushion) are
+    the model's leaves. Particles 1.. are the rack, row by row from the apex."""
+    _count("billiards", "rows", rows, 1)
+    for name, v, pos in (("speed", speed, False), ("angle", angle, False), ("gap", gap, False)):
+        _value("billiards", name, v, ())
+    dtype = _dtype("billiards", dtype, speed, angle)
+    L_, W = TABLE
+    d = 2 * BALL_RADIUS + gap
+    rack = [(L_ * 0.75 + r * d * np.sqrt(3) / 2, W / 2 + (k - r / 2) * d) for r in range(rows) for k in range(r + 1)]
+    x = jnp.asarray(np.array([(L_ * 0.25, W / 2)] + rack), dtype)
+    a = jnp.asarray(angle).astype(dtype)
+    v0 = jnp.asarray(speed).astype(dtype) * jnp.stack([jnp.cos(a), jnp.sin(a)])
+    v = jnp.zeros_like(x).at[0].set(v0)
+    planes = [((1.0, 0.0), 0.0), ((-1.0, 0.0), -L_), ((0.0, 1.0), 0.0), ((0.0, -1.0), -W)]
+    return build(x, BALL_MASS, velocities=v, gravity=jnp.zeros(2, dtype), radius=BALL_RADIUS, collide=True,
+                 planes=planes, restitution=restitution, friction=friction, restitution_threshold=0.05, dtype=dtype)
+
+
+def drape(n: int = 16, size: float = 1.0, mass: float = 0.5, *, height: float = 1.0, sphere_radius: float = 0.3,
+          friction: float = 0.3, dtype=None):
+    """A free n-by-n cloth (structural and shear rods, `size` m square, `mass` kg) held flat `height` m above
+    the ground plane z = 0 and centred over a static sphere resting on the ground, released from rest.
+    Particle radius: a quarter of the grid spacing."""
+    _count("drape", "n", n, 2)
+    for name, v in (("size", size), ("mass", mass), ("height", height), ("sphere_radius", sphere_radius)):
+        _value("drape", name, v, (), positive=True)
+    dtype = _dtype("drape", dtype, size, mass, height, sphere_radius)
+    s = jnp.asarray(size).astype(dtype)
+    u = jnp.linspace(-0.5, 0.5, n, dtype=dtype)
+    gx, gy = jnp.meshgrid(u, u)
+    x = jnp.stack([s * gx.ravel(), s * gy.ravel(), jnp.full(n * n, jnp.asarray(height).astype(dtype))], -1)
+    pairs, colour = cloth_edges(n, n)
+    R = jnp.asarray(sphere_radius).astype(dtype)
+    return build(x, jnp.asarray(mass).astype(dtype) / (n * n), rods=pairs, colouring=colour, grid_shape=(n, n),
+                 radius=0.25 * s / (n - 1), planes=[((0.0, 0.0, 1.0), 0.0)],
+                 spheres=[(jnp.stack([0 * R, 0 * R, R]), R)], friction=friction, dtype=dtype)
+
+
+def falling_chain(n_links: int = 20, length: float = 1.0, mass: float = 0.5, *, height: float = 0.5,
+                  angle: float = 0.3, friction: float = 0.5, restitution: float = 0.0, dtype=None):
+    """A free 2-D chain of `n_links` rods (n_links + 1 particles, `length` m, `mass` kg in all) held straight
+    at `angle` rad above the horizontal with its lowest end `height` m above the floor y = 0, released from rest.
+    Particle radius: a quarter of a link."""
+    _count("falling_chain", "n_links", n_links, 1)
+    for name, v in (("length", length), ("mass", mass), ("height", height)):
+        _value("falling_chain", name, v, (), positive=True)
+    _value("falling_chain", "angle", angle, ())
+    dtype = _dtype("falling_chain", dtype, length, mass, height, angle)
+    a = jnp.asarray(angle).astype(dtype)
+    s = jnp.linspace(0, 1, n_links + 1, dtype=dtype) * jnp.asarray(length).astype(dtype)
+    x = jnp.stack([s * jnp.cos(a), jnp.asarray(height).astype(dtype) + s * jnp.sin(a)], -1)
+    pairs = np.stack([np.arange(n_links), np.arange(1, n_links + 1)], -1)
+    return build(x, jnp.asarray(mass).astype(dtype) / (n_links + 1), rods=pairs,
+                 radius=0.25 * jnp.asarray(length).astype(dtype) / n_links, planes=[((0.0, 1.0), 0.0)],
+                 friction=friction, restitution=restitution, dtype=dtype)

@@ -143,10 +143,11 @@ def system(model, tb: Topology, dtype, batch: int) -> System:
 CPU_CHUNK = 1024
 
 
-def layout_generic(solver) -> bool:
+def layout_generic(solver, model=None) -> bool:
     """Whether `solver` only uses the internal layout, so it runs on the batch-minor topology. `Direct`
-    assembles its matrices in user order and is batched with `jax.vmap` instead."""
-    return getattr(solver, "batch_minor", True)
+    assembles its matrices in user order, and contacts gather pairs over the particle axis; both are batched
+    with `jax.vmap` instead."""
+    return getattr(solver, "batch_minor", True) and (model is None or model.contact is None)
 
 
 def _minor(model, states, solver, dt, steps, save_every):
@@ -164,6 +165,30 @@ def _minor(model, states, solver, dt, steps, save_every):
     return final, Trajectory(lead(particles_out(t, xs)), lead(particles_out(t, vs)), lead(flat_blocks_out(t, lams, B)))
 
 
+def _map(f, xs, batch_size):
+    """`lax.map(f, xs, batch_size=...)` that also takes and returns zero-size leaves (a model with contacts and
+    no rods has lam [B, 0], which lax.map's reshape cannot split into pieces)."""
+    leaves, tree = jax.tree.flatten(xs)
+    empty = [a.size == 0 for a in leaves]
+    if not any(empty):
+        return lax.map(f, xs, batch_size=batch_size)
+    b = leaves[0].shape[0]
+    kept = [a for a, e in zip(leaves, empty) if not e]
+    out_tree = []
+
+    def g(ks):
+        it = iter(ks)
+        full = [jnp.zeros(a.shape[1:], a.dtype) if e else next(it) for a, e in zip(leaves, empty)]
+        out = jax.tree.flatten(f(jax.tree.unflatten(tree, full)))
+        out_tree.append((out[1], [o.shape for o in out[0]], [o.dtype for o in out[0]]))
+        return [o for o in out[0] if o.size]
+
+    res = iter(lax.map(g, kept, batch_size=batch_size))
+    otree, shapes, dtypes = out_tree[0]
+    return jax.tree.unflatten(otree, [jnp.zeros((b,) + sh, dt) if int(np.prod(sh)) == 0 else next(res)
+                                      for sh, dt in zip(shapes, dtypes)])
+
+
 def _pad(tree, multiple):
     """Pad the leading (batch) axis of every leaf to a multiple of `multiple` with copies of the last entry."""
     b = jax.tree.leaves(tree)[0].shape[0]
@@ -177,9 +202,9 @@ def _local(model, states, solver, dt, steps, save_every, chunk):
     """The batch held by one device: batch-minor in chunks of `chunk` (None: one piece), or `jax.vmap` over
     chunks for solvers that are not layout-generic."""
     b = states.x.shape[0]
-    if not layout_generic(solver):
+    if not layout_generic(solver, model):
         one = lambda s: _sim._rollout_jit(model, s, solver, dt, steps, save_every)     # noqa: E731
-        return lax.map(one, states, batch_size=min(chunk or b, b))
+        return _map(one, states, min(chunk or b, b))
     if chunk is None or chunk >= b:
         return _minor(model, states, solver, dt, steps, save_every)
     padded = _pad(states, chunk)

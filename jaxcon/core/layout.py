@@ -51,10 +51,13 @@ def constraints_in(topo: Topology, a):
     return tuple(a[..., b.offset: b.offset + b.size].reshape(lead + b.shape) for b in topo.blocks)
 
 
-def constraints_concat(topo: Topology, blocks):
-    """Tuple of [..., *block.shape] -> one [..., m] array, still in block order (see `constraints_out`)."""
+def constraints_concat(topo: Topology, blocks, like=None):
+    """Tuple of [..., *block.shape] -> one [..., m] array, still in block order (see `constraints_out`). A model
+    without constraints gives [..., 0], its leading axes and dtype those of `like` ([..., dim, *view])."""
     if not blocks:
-        raise ValueError("model has no constraints")
+        if like is None:
+            raise ValueError("model has no constraints")
+        return jnp.zeros(like.shape[: like.ndim - 1 - len(topo.view)] + (0,), like.dtype)
     flat = [x.reshape(x.shape[: x.ndim - len(b.shape)] + (b.size,)) for x, b in zip(blocks, topo.blocks)]
     return jnp.concatenate(flat, axis=-1)
 
@@ -64,9 +67,9 @@ def constraints_unpermute(topo: Topology, a):
     return jnp.take(a, topo.inv_perm, axis=-1)
 
 
-def constraints_out(topo: Topology, blocks):
-    """Inverse of `constraints_in`."""
-    return constraints_unpermute(topo, constraints_concat(topo, blocks))
+def constraints_out(topo: Topology, blocks, like=None):
+    """Inverse of `constraints_in` (`like`: see `constraints_concat`)."""
+    return constraints_unpermute(topo, constraints_concat(topo, blocks, like))
 
 
 def _split_box(box, view):

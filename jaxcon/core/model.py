@@ -7,9 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcon.core import layout as _layout
-from jaxcon.core.checks import check_real, check_shape, check_values, resolve_dtype
+from jaxcon.core.checks import check_real, check_scalar, check_shape, check_values, resolve_dtype
+from jaxcon.core.contact import ContactTopology, contact_pairs
 from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
-from jaxcon.core.topology import Topology, check_colouring, greedy_colouring
+from jaxcon.core.topology import Topology, check_colouring, greedy_colouring, parse_pairs as _pairs
 
 Array = Any
 
@@ -22,13 +23,27 @@ class Model:
       inv_mass:    [n] 1/kg; 0 marks a fixed particle.
       rest_length: [m] metres, one per constraint in the order given to `build` (rods first, then ropes).
       gravity:     [dim] m/s^2.
-    Static: `topology` (index pairs, kinds, colouring, layout).
+    Contact leaves (None unless the model has contacts; see `build` and docs/contacts.md):
+      radius: [n] m; friction: Coulomb mu (scalar); restitution: e in [0, 1] (scalar);
+      restitution_threshold: approach speed (m/s) below which impacts are inelastic;
+      plane_normal [P, dim] (unit), plane_offset [P]: particle i stays in n . x >= offset + r_i;
+      sphere_centre [S, dim], sphere_radius [S]: static spheres particles stay outside of.
+    Static: `topology` (index pairs, kinds, colouring, layout) and `contact` (a ContactTopology, or None).
     """
 
     inv_mass: Array
     rest_length: Array
     gravity: Array
     topology: Topology = static_field()
+    radius: Array = None
+    friction: Array = None
+    restitution: Array = None
+    restitution_threshold: Array = None
+    plane_normal: Array = None
+    plane_offset: Array = None
+    sphere_centre: Array = None
+    sphere_radius: Array = None
+    contact: Optional[ContactTopology] = static_field(default=None)
 
     def __post_init__(self):
         t = self.topology
@@ -40,6 +55,7 @@ class Model:
         check_values("Model", "inv_mass", self.inv_mass, nonneg=True)
         check_values("Model", "rest_length", self.rest_length, nonneg=True)
         check_values("Model", "gravity", self.gravity)
+        _check_contact_leaves(self)
 
     # convenience, all static
     @property
@@ -73,8 +89,39 @@ class Model:
         ropes = int(t.is_rope.sum())
         kinds = ", ".join(plural(k, kind) for k, kind in ((t.m - ropes, "rod"), (ropes, "rope")) if k)
         dtype = jnp.result_type(self.rest_length if t.m else self.inv_mass)
+        c = self.contact
+        contacts = "" if c is None else ", contacts: " + ", ".join(
+            plural(k, word) for k, word in ((c.n_planes, "plane"), (c.n_spheres, "sphere"), (c.n_pairs, "pair"))
+            if k)
         return (f"Model({plural(t.n, 'particle')}{fixed}, {plural(t.m, 'constraint')}"
-                f"{f' ({kinds})' if kinds else ''}, {plural(t.n_colours, 'colour')}, dim={t.dim}, dtype={dtype})")
+                f"{f' ({kinds})' if kinds else ''}, {plural(t.n_colours, 'colour')}{contacts}, dim={t.dim}, "
+                f"dtype={dtype})")
+
+
+_CONTACT_LEAVES = ("radius", "friction", "restitution", "restitution_threshold", "plane_normal", "plane_offset",
+                   "sphere_centre", "sphere_radius")
+
+
+def _check_contact_leaves(model) -> None:
+    c, t = model.contact, model.topology
+    if c is None:
+        given = [k for k in _CONTACT_LEAVES if getattr(model, k) is not None]
+        if given:
+            raise ValueError(f"Model: `{given[0]}` is set but the model has no contacts (build it with `planes`, "
+                             "`spheres` or `collide`)")
+        return
+    if not isinstance(c, ContactTopology):
+        raise TypeError(f"Model: `contact` must be a ContactTopology or None, got {type(c).__name__}")
+    shapes = {"radius": (t.n,), "friction": (), "restitution": (), "restitution_threshold": (),
+              "plane_normal": (c.n_planes, t.dim), "plane_offset": (c.n_planes,),
+              "sphere_centre": (c.n_spheres, t.dim), "sphere_radius": (c.n_spheres,)}
+    for k, shape in shapes.items():
+        check_shape("Model", k, getattr(model, k), shape)
+        check_values("Model", k, getattr(model, k), nonneg=k in ("radius", "friction", "restitution",
+                                                                   "restitution_threshold", "sphere_radius"))
+    e = concrete(model.restitution)
+    if e is not None and float(e) > 1:
+        raise ValueError(f"Model: `restitution` must be in [0, 1], got {float(e)} (above 1 every bounce gains energy)")
 
 
 @pytree_dataclass
@@ -85,24 +132,34 @@ class State:
       v:   [n, dim] velocities (m/s).
       lam: [m] constraint impulse of the last step (N s; > 0 pulls the two particles together), the
            warm start of the next step.
+      contact_n: [k] normal contact impulses of the last step (N s, >= 0, pushing apart), or None for a model
+           without contacts (also accepted, as zeros, for one with them). Order: `ContactTopology`.
+      contact_t: [k, dim] friction impulses of the last step (N s, world frame, in the contact's tangent plane,
+           |contact_t| <= mu contact_n), acting on the contact's second particle (the particle, for obstacles).
     """
 
     x: Array
     v: Array
     lam: Array
+    contact_n: Array = None
+    contact_t: Array = None
 
     def __repr__(self):
-        return (f"State(x={jnp.shape(self.x)}, v={jnp.shape(self.v)}, lam={jnp.shape(self.lam)}, "
+        extra = "" if self.contact_n is None else f", contact_n={jnp.shape(self.contact_n)}"
+        return (f"State(x={jnp.shape(self.x)}, v={jnp.shape(self.v)}, lam={jnp.shape(self.lam)}{extra}, "
                 f"dtype={jnp.result_type(self.x)})")
 
 
 @pytree_dataclass
 class Trajectory:
-    """Per-step record of a rollout (after each step): x, v [steps, n, dim]; lam [steps, m]."""
+    """Per-step record of a rollout (after each step): x, v [steps, n, dim]; lam [steps, m]; for models with
+    contacts also contact_n [steps, k] and contact_t [steps, k, dim] (see `State`)."""
 
     x: Array
     v: Array
     lam: Array
+    contact_n: Array = None
+    contact_t: Array = None
 
 
 def check_state(owner: str, model: Model, state: State) -> None:
@@ -119,7 +176,20 @@ def check_state(owner: str, model: Model, state: State) -> None:
     check_shape(owner, "state.x", state.x, (t.n, t.dim))
     check_shape(owner, "state.v", state.v, (t.n, t.dim))
     check_shape(owner, "state.lam", state.lam, (t.m,))
-    for name in ("x", "v", "lam"):
+    names = ["x", "v", "lam"]
+    c = model.contact
+    for name, shape in (("contact_n", None if c is None else (c.k,)),
+                        ("contact_t", None if c is None else (c.k, t.dim))):
+        a = getattr(state, name)
+        if a is None:
+            continue
+        if shape is None:
+            raise ValueError(f"{owner}: `state.{name}` is set but the model has no contacts")
+        if not hasattr(a, "dtype") or not jnp.issubdtype(jnp.result_type(a), jnp.floating):
+            raise TypeError(f"{owner}: `state.{name}` must be a floating-point array")
+        check_shape(owner, f"state.{name}", a, shape)
+        names.append(name)
+    for name in names:
         check_values(owner, f"state.{name}", getattr(state, name))
 
 
@@ -152,38 +222,6 @@ def _fixed_mask(fixed, n: int) -> np.ndarray:
     return mask
 
 
-def _pairs(name: str, pairs, n: int) -> np.ndarray:
-    if pairs is None:
-        return np.zeros((0, 2), np.int64)
-    try:
-        a = np.asarray(pairs)
-    except ValueError:
-        raise ValueError(f"build: `{name}` must be a list of (i, j) particle index pairs; some entries are not "
-                         "pairs (ragged list)") from None
-    if a.size == 0:
-        return np.zeros((0, 2), np.int64)
-    if a.ndim != 2 or a.shape[1] != 2:
-        raise ValueError(f"build: `{name}` must be a list of (i, j) particle index pairs, got shape {a.shape}")
-    if a.dtype.kind not in "iu":
-        if a.dtype.kind == "f" and np.all(a == np.round(a)):
-            a = a.astype(np.int64)
-        else:
-            raise ValueError(f"build: `{name}` must hold integer particle indices, got dtype {a.dtype}")
-    a = a.astype(np.int64)
-    bad = (a < 0) | (a >= n)
-    if bad.any():
-        k = int(np.argwhere(bad)[0][0])
-        raise ValueError(
-            f"build: `{name}[{k}]` = {tuple(a[k].tolist())} has a particle index out of range "
-            f"(there are {n} particles, indices 0..{n - 1})"
-        )
-    same = a[:, 0] == a[:, 1]
-    if same.any():
-        k = int(np.argmax(same))
-        raise ValueError(f"build: `{name}[{k}]` joins particle {int(a[k, 0])} to itself")
-    return a
-
-
 def build(
     positions,
     masses,
@@ -197,6 +235,13 @@ def build(
     colouring=None,
     grid_shape: Optional[tuple] = None,
     dtype=None,
+    radius=None,
+    collide=False,
+    planes: Optional[Sequence] = None,
+    spheres: Optional[Sequence] = None,
+    friction=None,
+    restitution=None,
+    restitution_threshold=None,
 ):
     """Build a model and its initial state from arrays.
 
@@ -226,6 +271,15 @@ def build(
       dtype: float dtype of the model and state. None: the dtype of `positions` when it is a floating-point
         array, else JAX's default float dtype (float64 under `jax_enable_x64`, float32 otherwise).
 
+    Contacts (docs/contacts.md; values are differentiable leaves, counts static; then rods are optional):
+      radius: particle radius (m), a scalar or [n]; default 0 (points). Particles in `collide` pairs need > 0.
+      collide: True (every pair of particles no rod or rope joins), or a list of candidate (i, j) pairs.
+      planes: [(normal, offset), ...]: particles stay in normal . x >= offset + radius (normal normalised).
+      spheres: [(centre, R), ...]: static spheres of radius R > 0 every particle stays outside of.
+      friction, restitution: Coulomb mu >= 0 and e in [0, 1] of every contact (default 0 and 0).
+      restitution_threshold: approach speed (m/s, default 0.5) below which an impact is inelastic, so that
+        resting contacts (approach speed g dt per step) do not bounce.
+
     Returns:
       (model, state).
     """
@@ -246,23 +300,14 @@ def build(
     pairs = np.concatenate([rod_pairs, rope_pairs], 0)
     is_rope = np.concatenate([np.zeros(len(rod_pairs), bool), np.ones(len(rope_pairs), bool)])
     m = len(pairs)
-    if m == 0:
-        raise ValueError("build: the model needs at least one constraint (`rods` or `ropes`)")
+    contact_pairs_ = contact_pairs(collide, n, pairs)
+    has_contacts = bool(planes) or bool(spheres) or len(contact_pairs_) > 0
+    if m == 0 and not has_contacts:
+        raise ValueError("build: the model needs at least one constraint (`rods` or `ropes`) or contact "
+                         "(`planes`, `spheres` or `collide`)")
     i, j = pairs[:, 0], pairs[:, 1]
 
-    if rest_lengths is None:
-        xc = concrete(positions)
-        if xc is not None:      # known now: the distances in float64, rounded once
-            xc = np.asarray(xc, np.float64)
-            rest = jnp.asarray(np.linalg.norm(xc[j] - xc[i], axis=-1), dtype)
-        else:
-            rest = _layout.safe_norm(x[j] - x[i], axis=-1)[0]
-    else:
-        check_real("build", "rest_lengths", rest_lengths)
-        check_shape("build", "rest_lengths", rest_lengths, (m,))
-        check_values("build", "rest_lengths", rest_lengths, nonneg=True)
-        rest = jnp.asarray(rest_lengths).astype(dtype)
-
+    rest = _rest_lengths(rest_lengths, positions, x, i, j, dtype)
     if velocities is None:
         v = jnp.zeros_like(x)
     else:
@@ -273,9 +318,109 @@ def build(
 
     g = _gravity("build", gravity, dim, dtype)
     topo = Topology(n, dim, i, j, is_rope, _colouring(colouring, i, j, n), _view(grid_shape, n))
-    model = Model(inv_mass, rest, g, topo)
-    state = State(x, v, jnp.zeros(m, dtype))
-    return model, state
+    contact = dict(radius=radius, planes=planes, spheres=spheres, friction=friction, restitution=restitution,
+                   threshold=restitution_threshold)
+    return _with_contacts(Model(inv_mass, rest, g, topo), State(x, v, jnp.zeros(m, dtype)), contact_pairs_,
+                          has_contacts, **contact)
+
+
+def _with_contacts(model, state, pairs, has_contacts, radius, planes, spheres, friction, restitution, threshold):
+    """`build`'s (model, state) with its contact leaves and topology, and zero contact impulses."""
+    if not has_contacts:
+        given = [k for k, val in (("radius", radius), ("friction", friction), ("restitution", restitution),
+                                  ("restitution_threshold", threshold)) if val is not None]
+        if given:
+            raise ValueError(f"build: `{given[0]}` is given but the model has no contacts; pass `planes`, "
+                             "`spheres` or `collide`")
+        return model, state
+    t, dtype = model.topology, state.x.dtype
+    leaves = _contact_leaves(t.n, t.dim, dtype, radius, planes, spheres, friction, restitution, threshold, pairs)
+    ct = ContactTopology(t.n, len(leaves["plane_offset"]), len(leaves["sphere_radius"]), pairs, t.pos)
+    model = model.replace(contact=ct, **leaves)
+    return model, state.replace(contact_n=jnp.zeros(ct.k, dtype), contact_t=jnp.zeros((ct.k, t.dim), dtype))
+
+
+def _contact_leaves(n, dim, dtype, radius, planes, spheres, friction, restitution, threshold, pairs) -> dict:
+    """The contact leaves of `build`, checked where known and cast to `dtype`."""
+    def scalar(name, value, default, hi=None):
+        if value is None:
+            return jnp.asarray(default, dtype)
+        check_scalar("build", name, value, 0.0, hi)
+        return jnp.asarray(value).astype(dtype)
+
+    if radius is None:
+        r = jnp.zeros(n, dtype)
+    else:
+        check_real("build", "radius", radius)
+        if np.ndim(radius) not in (0, 1):
+            raise ValueError(f"build: `radius` must be a scalar or have shape ({n},), got {np.shape(radius)}")
+        if np.ndim(radius) == 1:
+            check_shape("build", "radius", radius, (n,))
+        check_values("build", "radius", radius, nonneg=True)
+        r = jnp.broadcast_to(jnp.asarray(radius).astype(dtype), (n,))
+    rc = concrete(r)
+    if len(pairs) and rc is not None:
+        both = rc[pairs[:, 0]] + rc[pairs[:, 1]]
+        if (both <= 0).any():
+            k = int(np.argmax(both <= 0))
+            raise ValueError(f"build: particles {tuple(pairs[k].tolist())} may collide (`collide`) but both have "
+                             "radius 0; give them a `radius` > 0")
+    normals, offsets = _obstacles("planes", planes, dim, dtype, "(normal, offset)")
+    centres, radii = _obstacles("spheres", spheres, dim, dtype, "(centre, R)")
+    check_values("build", "spheres' R", radii, positive=True)
+    nc = concrete(normals)
+    if nc is not None and len(nc):
+        norm = np.linalg.norm(np.asarray(nc, np.float64), axis=-1)
+        if (norm == 0).any():
+            raise ValueError(f"build: `planes[{int(np.argmax(norm == 0))}]` has a zero normal")
+        normals = jnp.asarray(np.asarray(nc, np.float64) / norm[:, None], dtype)
+    elif len(normals):
+        normals = _layout.safe_norm(normals, axis=-1)[1]
+    return dict(radius=r, friction=scalar("friction", friction, 0.0),
+                restitution=scalar("restitution", restitution, 0.0, 1.0),
+                restitution_threshold=scalar("restitution_threshold", threshold, 0.5),
+                plane_normal=normals, plane_offset=offsets, sphere_centre=centres, sphere_radius=radii)
+
+
+def _obstacles(name, items, dim, dtype, form):
+    """[(vector [dim], scalar), ...] -> ([k, dim], [k]) arrays in `dtype`."""
+    if items is None:
+        items = []
+    try:
+        items = list(items)
+    except TypeError:
+        raise TypeError(f"build: `{name}` must be a list of {form} tuples, got {type(items).__name__}") from None
+    vecs, scalars = [], []
+    for q, item in enumerate(items):
+        try:
+            a, b = item
+        except (TypeError, ValueError):
+            raise ValueError(f"build: `{name}[{q}]` must be a {form} tuple, got {item!r}") from None
+        check_real("build", f"{name}[{q}]", a)
+        check_real("build", f"{name}[{q}]", b)
+        check_shape("build", f"{name}[{q}][0]", a, (dim,))
+        check_shape("build", f"{name}[{q}][1]", b, ())
+        check_values("build", f"{name}[{q}]", a)
+        check_values("build", f"{name}[{q}]", b)
+        vecs.append(jnp.asarray(a).astype(dtype))
+        scalars.append(jnp.asarray(b).astype(dtype))
+    if not vecs:
+        return jnp.zeros((0, dim), dtype), jnp.zeros((0,), dtype)
+    return jnp.stack(vecs), jnp.stack(scalars)
+
+
+def _rest_lengths(rest_lengths, positions, x, i, j, dtype):
+    """[m] rest lengths: as given (checked), or the initial distances (in float64 when known now)."""
+    if rest_lengths is None:
+        xc = concrete(positions)
+        if xc is not None:      # known now: the distances in float64, rounded once
+            xc = np.asarray(xc, np.float64)
+            return jnp.asarray(np.linalg.norm(xc[j] - xc[i], axis=-1), dtype)
+        return _layout.safe_norm(x[j] - x[i], axis=-1)[0]
+    check_real("build", "rest_lengths", rest_lengths)
+    check_shape("build", "rest_lengths", rest_lengths, (len(i),))
+    check_values("build", "rest_lengths", rest_lengths, nonneg=True)
+    return jnp.asarray(rest_lengths).astype(dtype)
 
 
 def _inverse_masses(masses, is_fixed, dtype):

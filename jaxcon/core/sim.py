@@ -14,6 +14,7 @@ from jaxcon.core.checks import check_int, check_real
 from jaxcon.core.model import Model, State, Trajectory, check_state
 from jaxcon.core.pytree import concrete
 from jaxcon.core.system import Solver, System
+from jaxcon.solvers import contact as C
 
 
 def _check_call(owner, model, state, solver, dt, steps=None):
@@ -25,6 +26,10 @@ def _check_call(owner, model, state, solver, dt, steps=None):
     check_dt(owner, dt, _dtype(state), getattr(solver, "substeps", 1))
     if steps is not None:
         check_int(owner, "steps", steps, 1)
+    if model.contact is not None and not solver.supports_contacts:
+        raise ValueError(
+            f"{owner}: {type(solver).__name__} does not support contacts, and the model has some ({model.contact!r}); "
+            "use jc.PGS (sequential impulses) for models with `planes`, `spheres` or `collide`")
     warn = getattr(solver, "_check_stability", None)
     if warn is not None:
         warn(owner, model, dt)
@@ -57,21 +62,56 @@ def _dtype(state):
 
 
 def _enter(model, state):
+    """(System, x, v, lam) in the internal layout; for a model with contacts lam is (blocks, contact Impulses),
+    a state without contact impulses starting from zero."""
     t = model.topology
     dtype = _dtype(state)
     sys = System.from_model(model, dtype)
     x = L.particles_in(t, jnp.asarray(state.x, dtype))
     v = L.particles_in(t, jnp.asarray(state.v, dtype))
     lam = L.constraints_in(t, jnp.asarray(state.lam, dtype))
+    if model.contact is not None:
+        ct = model.contact
+        if state.contact_n is None:
+            imp = C.zero_impulses(t, ct, dtype)
+        else:
+            cn = jnp.asarray(state.contact_n, dtype)
+            ctan = (jnp.zeros(cn.shape + (t.dim,), dtype) if state.contact_t is None
+                    else jnp.asarray(state.contact_t, dtype))
+            imp = C.contacts_in(t, ct, cn, ctan)
+        lam = (lam, imp)
     return sys, x, v, lam
+
+
+def _impulses_out(model, lam, like):
+    """(lam [..., m], contact_n, contact_t) in user order from the internal carry (contacts None without)."""
+    t = model.topology
+    if model.contact is None:
+        return L.constraints_out(t, lam, like), None, None
+    blocks, imp = lam
+    cn, ctan = C.contacts_out(t, model.contact, imp)
+    return L.constraints_out(t, blocks, like), cn, ctan
+
+
+def _record_sys(sys, lam, like):
+    """One step's impulses as recorded in the time loop: rods flat in block order, contacts in user order."""
+    t = sys.topology
+    if sys.contact is None:
+        return L.constraints_concat(t, lam, like)
+    blocks, imp = lam
+    return (L.constraints_concat(t, blocks, like),) + C.contacts_out(t, sys.contact.ct, imp)
+
+
+def _state_out(model, x, v, lam):
+    t = model.topology
+    return State(L.particles_out(t, x), L.particles_out(t, v), *_impulses_out(model, lam, x))
 
 
 @jax.jit
 def _step_jit(model, state, solver, dt):
     sys, x, v, lam = _enter(model, state)
     x, v, lam = solver._step(sys, x, v, lam, jnp.asarray(dt, x.dtype))
-    t = model.topology
-    return State(L.particles_out(t, x), L.particles_out(t, v), L.constraints_out(t, lam))
+    return _state_out(model, x, v, lam)
 
 
 def step(model: Model, state: State, solver: Solver, dt) -> State:
@@ -84,7 +124,6 @@ def step(model: Model, state: State, solver: Solver, dt) -> State:
 def _time_loop(sys, solver, carry, dt, steps, save_every, checkpoint=None, remat=True):
     """Run `steps` steps of `solver` from the internal carry (x, v, lam). Returns (carry, (xs, vs, lams)), the
     records stacked over steps // save_every, lams flat in block order."""
-    t = sys.topology
     # Reverse mode recomputes each step from its carry instead of storing the step's intermediates: a step
     # holds dozens of small per-colour arrays (frames, biases, warm start), and stacking each of them over the
     # time loop made the gradient's program 2x larger and slower to compile (docs/performance.md). A rollout
@@ -106,7 +145,7 @@ def _time_loop(sys, solver, carry, dt, steps, save_every, checkpoint=None, remat
         # block: with ten stacked outputs per step, XLA:CPU's two worker threads took turns running the time
         # loop, and recording cost XPBD on the 64x64 cloth about 30% per step, none of it on one thread
         # (NPROC=1 or taskset). Flat, the recording figure fell by 12% (docs/performance.md).
-        return carry, (x, v, L.constraints_concat(t, lam))
+        return carry, (x, v, _record_sys(sys, lam, x))
 
     def records(carry, n):
         if n == 1:          # one record (the final state): no outer loop around the steps
@@ -139,9 +178,12 @@ def _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint=None, r
     carry, recs = _time_loop(sys, solver, (x, v, lam), jnp.asarray(dt, x.dtype), steps, save_every, checkpoint,
                              remat)
     (x, v, lam), (xs, vs, lams) = carry, recs
-    final = State(L.particles_out(t, x), L.particles_out(t, v), L.constraints_out(t, lam))
-    traj = Trajectory(L.particles_out(t, xs), L.particles_out(t, vs), L.constraints_unpermute(t, lams))
-    return final, traj
+    final = _state_out(model, x, v, lam)
+    if model.contact is None:
+        return final, Trajectory(L.particles_out(t, xs), L.particles_out(t, vs), L.constraints_unpermute(t, lams))
+    lams, cns, cts = lams
+    return final, Trajectory(L.particles_out(t, xs), L.particles_out(t, vs), L.constraints_unpermute(t, lams),
+                             cns, cts)
 
 
 def available_memory() -> tuple[int, str] | None:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import operator
 
+import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -16,13 +17,13 @@ def substepped(substep, substeps: int, x, v, lam, dt):
     h = dt / substeps
     if substeps == 1:
         return substep(x, v, lam, h)
-    ws = tuple(l / substeps for l in lam)
-    zero = tuple(jnp.zeros_like(l) for l in lam)
+    ws = jax.tree.map(lambda l: l / substeps, lam)
+    zero = jax.tree.map(jnp.zeros_like, lam)
 
     def body(_, carry):
         x, v, ws, total = carry
         x, v, ws = substep(x, v, ws, h)
-        return x, v, ws, tuple(map(operator.add, total, ws))
+        return x, v, ws, jax.tree.map(operator.add, total, ws)
 
     x, v, _, total = lax.fori_loop(0, substeps, body, (x, v, ws, zero))
     return x, v, total

@@ -26,13 +26,15 @@ class System:
     rest: tuple
     gravity: Array
     topology: Topology = static_field()
+    contact: Any = None          # a ContactSystem (jaxcon.solvers.contact) for models with contacts
 
     @classmethod
     def from_model(cls, model: Model, dtype) -> "System":
+        from jaxcon.solvers.contact import ContactSystem
         t = model.topology
         w = L.per_particle_in(t, jnp.asarray(model.inv_mass, dtype))
         rest = L.constraints_in(t, jnp.asarray(model.rest_length, dtype))
-        return cls(w, rest, jnp.asarray(model.gravity, dtype), t)
+        return cls(w, rest, jnp.asarray(model.gravity, dtype), t, ContactSystem.from_model(model, dtype))
 
     def apply_gravity(self, v, h):
         g = self.gravity.reshape((-1,) + (1,) * len(self.topology.view))
@@ -43,8 +45,12 @@ class Solver:
     """Base class. A solver advances the internal carry ``(x, v, lam)`` by one step of length dt.
 
     Subclasses implement `_step(sys, x, v, lam, dt) -> (x, v, lam_step)`, where x, v are [dim, *view] and lam
-    is a tuple of per-block impulses accumulated over the step (used as the next step's warm start).
+    is a tuple of per-block impulses accumulated over the step (used as the next step's warm start). For a
+    model with contacts lam is the pair (block impulses, contact `Impulses`), and only solvers whose
+    `supports_contacts` is True are given one.
     """
+
+    supports_contacts = False
 
     def _step(self, sys: System, x, v, lam, dt):
         raise NotImplementedError

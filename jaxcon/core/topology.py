@@ -56,6 +56,39 @@ def check_colouring(i: np.ndarray, j: np.ndarray, colour: np.ndarray, n: int) ->
             )
 
 
+def parse_pairs(name: str, pairs, n: int) -> np.ndarray:
+    """`build`'s (i, j) index pairs argument `name` as an [k, 2] int64 array, checked against n particles."""
+    if pairs is None:
+        return np.zeros((0, 2), np.int64)
+    try:
+        a = np.asarray(pairs)
+    except ValueError:
+        raise ValueError(f"build: `{name}` must be a list of (i, j) particle index pairs; some entries are not "
+                         "pairs (ragged list)") from None
+    if a.size == 0:
+        return np.zeros((0, 2), np.int64)
+    if a.ndim != 2 or a.shape[1] != 2:
+        raise ValueError(f"build: `{name}` must be a list of (i, j) particle index pairs, got shape {a.shape}")
+    if a.dtype.kind not in "iu":
+        if a.dtype.kind == "f" and np.all(a == np.round(a)):
+            a = a.astype(np.int64)
+        else:
+            raise ValueError(f"build: `{name}` must hold integer particle indices, got dtype {a.dtype}")
+    a = a.astype(np.int64)
+    bad = (a < 0) | (a >= n)
+    if bad.any():
+        k = int(np.argwhere(bad)[0][0])
+        raise ValueError(
+            f"build: `{name}[{k}]` = {tuple(a[k].tolist())} has a particle index out of range "
+            f"(there are {n} particles, indices 0..{n - 1})"
+        )
+    same = a[:, 0] == a[:, 1]
+    if same.any():
+        k = int(np.argmax(same))
+        raise ValueError(f"build: `{name}[{k}]` joins particle {int(a[k, 0])} to itself")
+    return a
+
+
 def _strided_box(coords: np.ndarray) -> Optional[tuple]:
     """If `coords` ([k, ndim], in row-major order) is exactly a strided box, return (start, step, count)."""
     start, step, count = [], [], []

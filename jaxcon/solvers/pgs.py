@@ -12,6 +12,7 @@ from jaxcon.core.checks import check_bool, check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
+from jaxcon.solvers import contact
 from jaxcon.solvers.common import (
     apply_impulses,
     check_stabilization,
@@ -91,7 +92,11 @@ class PGS(Solver):
         check_scalar("PGS", "beta", self.beta, 0.0, 1.0)
         check_scalar("PGS", "warm_start_factor", self.warm_start_factor, 0.0, 1.0)
 
+    supports_contacts = True
+
     def _substep(self, sys, x, v, lam_ws, h):
+        if sys.contact is not None:
+            return self._substep_contacts(sys, x, v, lam_ws, h)
         topo = sys.topology
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
@@ -106,8 +111,65 @@ class PGS(Solver):
         else:
             lam = tuple(jnp.zeros_like(f.C) for f in fr)
 
+        block_sweep = self._block_sweep(topo, fr, bias)
+
         def sweep(_, carry):
-            v, lam = carry
+            return block_sweep(*carry)
+
+        if self.implicit:
+            return self._implicit(sys, x, v, lam, fr, bias, h)
+        v, lam = lax.fori_loop(0, self.iterations, sweep, (v, lam))
+        if split:
+            vp = pseudo_velocities(sys, fr, position_correction(topo, fr, beta, h), self.iterations)
+            return x + h * (v + vp), v, lam
+        return x + h * v, v, lam
+
+    def _substep_contacts(self, sys, x, v, lam_ws, h):
+        """The same step with contacts (jaxcon.solvers.contact): each sweep solves the constraint colours, then
+        the contacts; positions get the time-of-impact correction. Contacts push out overlap with `beta`."""
+        if self.implicit:
+            raise ValueError("PGS(implicit=True) does not support contacts (an inequality); use implicit=False")
+        topo, cs = sys.topology, sys.contact
+        lam_ws, imp_ws = lam_ws
+        dtype = x.dtype
+        beta = jnp.asarray(self.beta, dtype)
+        v0, v = v, sys.apply_gravity(v, h)
+        v_free = v
+        fr = frames(sys, x)
+        split = self.stabilization == "split"
+        bias = velocity_bias(topo, fr, jnp.zeros((), dtype) if split else beta, h)
+        obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h)
+        if self.warm_start:
+            factor = self.warm_start_factor
+            factor = factor if isinstance(factor, (int, float)) else jnp.asarray(factor, dtype)
+            if not self.warm_start_gradient:
+                imp_ws = lax.stop_gradient(imp_ws)
+            v, lam = warm_start(sys, v, fr, lam_ws, factor, self.warm_start_gradient)
+            v, imp = contact.warm_start(cs, sys.w, v, obs, pairs, imp_ws, factor)
+        else:
+            lam = tuple(jnp.zeros_like(f.C) for f in fr)
+            imp = contact.zero_impulses(topo, cs.ct, dtype)
+        block_sweep = self._block_sweep(topo, fr, bias)
+
+        def sweep(_, carry):
+            v, lam, imp = carry
+            v, lam = block_sweep(v, lam)
+            v, imp = contact.sweep(cs, sys.w, v, obs, pairs, imp)
+            return v, lam, imp
+
+        v, lam, imp = lax.fori_loop(0, self.iterations, sweep, (v, lam, imp))
+        # Time-of-impact correction: a particle whose velocity changed at tau within the step moved at its old
+        # velocity until then (x' = x + tau v1 + (h - tau) v' instead of x + h v').
+        dx = -contact.impact_times(cs, obs, pairs, imp, x.shape) * (v - v_free)
+        move = v
+        if split and fr:       # the pseudo-velocity moves this step's positions and is then discarded
+            move = v + pseudo_velocities(sys, fr, position_correction(topo, fr, beta, h), self.iterations)
+        return contact.project_overlaps(cs, sys.w, x + h * move + dx), v, (lam, imp)
+
+    @staticmethod
+    def _block_sweep(topo, fr, bias):
+        """One Gauss-Seidel pass over the constraint colours: (v, lam) -> (v, lam)."""
+        def sweep(v, lam):
             lam = list(lam)
             for c, (blk, f, b) in enumerate(zip(topo.blocks, fr, bias)):
                 vi, vj = L.gather_pair(topo, blk, v)
@@ -117,14 +179,7 @@ class PGS(Solver):
                 lam[c] = new
                 v = v + L.scatter_pair(topo, blk, f.wi * p, -f.wj * p)
             return v, tuple(lam)
-
-        if self.implicit:
-            return self._implicit(sys, x, v, lam, fr, bias, h)
-        v, lam = lax.fori_loop(0, self.iterations, sweep, (v, lam))
-        if split:
-            vp = pseudo_velocities(sys, fr, position_correction(topo, fr, beta, h), self.iterations)
-            return x + h * (v + vp), v, lam
-        return x + h * v, v, lam
+        return sweep
 
     def _implicit(self, sys, x, v, lam0, fr, bias, h):
         """Converged multipliers with implicit derivatives: lam solves G lam = rel(v) + bias, where

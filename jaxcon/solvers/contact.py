@@ -1,0 +1,404 @@
+"""Contacts as unilateral velocity constraints, for the sequential-impulse solvers (docs/contacts.md).
+
+Each contact has a unit normal n (from the obstacle, or from the pair's first particle, towards the particle
+that is pushed), a gap C (< 0: overlap) and an accumulated normal impulse lam_n >= 0 with a friction impulse
+lam_t in the tangent plane, |lam_t| <= mu lam_n. Per (sub)step of length h, with vn the approach velocity
+measured before the solve (after gravity):
+
+* Speculative contact (Box2D): a separated contact (C > 0) that does not close within the step only asks
+  vn' >= -C / h: it may close the gap, never more, so nothing tunnels.
+* Impact: a separated contact that would close within the step (C + h vn < 0) hits at time of impact
+  toi = C / -vn. Its target is the bounce velocity e u (0 when the impact speed u is below
+  `restitution_threshold`) plus what the external forces add after the impact (`_targets`), and after
+  the solve the positions are corrected as if the impulse had acted at toi instead of at the start of the
+  step: x += -toi * (velocity change from that contact's impulse) (DiffTaichi's time-of-impact correction).
+  This makes positions and their gradients those of an impact at the right time: an elastic ball dropped on
+  the ground has d y_T / d y_0 = -1 instead of +1.
+* Touching or overlapping (C <= 0): vn' >= max(bounce, -beta C / h) (Baumgarte push-out of the overlap).
+
+Friction is solved after each contact's normal row, as a 2-D or 3-D vector clamped to the Coulomb disc.
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Optional
+
+import jax.numpy as jnp
+from jax import lax
+
+from jaxcon.core import layout as L
+from jaxcon.core.contact import ContactTopology
+from jaxcon.core.pytree import pytree_dataclass, static_field
+from jaxcon.core.topology import Topology
+
+Array = Any
+
+
+@pytree_dataclass
+class ContactSystem:
+    """A model's contact leaves in the internal layout: radius [1, *view] and [n] (internal order)."""
+
+    radius: Array
+    radius_flat: Array
+    friction: Array
+    restitution: Array
+    threshold: Array
+    plane_normal: Array
+    plane_offset: Array
+    sphere_centre: Array
+    sphere_radius: Array
+    ct: ContactTopology = static_field()
+
+    @classmethod
+    def from_model(cls, model, dtype) -> Optional["ContactSystem"]:
+        if model.contact is None:
+            return None
+        t = model.topology
+        a = lambda v: jnp.asarray(v, dtype)      # noqa: E731
+        r = L.per_particle_in(t, a(model.radius))
+        return cls(r, r.reshape(t.n), a(model.friction), a(model.restitution), a(model.restitution_threshold),
+                   a(model.plane_normal), a(model.plane_offset), a(model.sphere_centre), a(model.sphere_radius),
+                   model.contact)
+
+
+class Impulses(NamedTuple):
+    """Accumulated contact impulses, internal layout: obstacles n [Q, *view], t [Q, dim, *view]; pairs
+    n [R, S], t [dim, R, S]."""
+
+    obs_n: Array
+    obs_t: Array
+    pair_n: Array
+    pair_t: Array
+
+
+class Rows(NamedTuple):
+    """Contact rows of one (sub)step: normal n, target velocity `target`, effective mass k, inverse-mass sum
+    winv, time of impact `toi` (0 unless an impact happens within the step)."""
+
+    n: Array
+    target: Array
+    k: Array
+    winv: Array
+    toi: Array
+    gap: Array
+
+
+# ---- layout --------------------------------------------------------------------------------------------------
+def contacts_in(topo: Topology, ct: ContactTopology, cn, ctan) -> Impulses:
+    """User order (cn [k], ctan [k, dim]) -> internal `Impulses`."""
+    n, q, dim = topo.n, ct.n_obstacles, topo.dim
+    obs_n = cn[: q * n].reshape(q, n)
+    obs_t = jnp.swapaxes(ctan[: q * n].reshape(q, n, dim), 1, 2)
+    if topo.order is not None:
+        obs_n, obs_t = jnp.take(obs_n, topo.order, axis=-1), jnp.take(obs_t, topo.order, axis=-1)
+    obs_n, obs_t = obs_n.reshape((q,) + topo.view), obs_t.reshape((q, dim) + topo.view)
+    R, S = ct.rounds, ct.width
+    pn = jnp.zeros((R * S,), cn.dtype)
+    pt = jnp.zeros((dim, R * S), cn.dtype)
+    if ct.n_pairs:
+        pn = pn.at[ct.slot.array].set(cn[q * n:])
+        pt = pt.at[:, ct.slot.array].set(ctan[q * n:].T)
+    return Impulses(obs_n, obs_t, pn.reshape(R, S), pt.reshape(dim, R, S))
+
+
+def contacts_out(topo: Topology, ct: ContactTopology, imp: Impulses):
+    """Internal `Impulses` (any leading axes) -> user order (cn [..., k], ctan [..., k, dim])."""
+    q, dim = ct.n_obstacles, topo.dim
+    lead = imp.obs_n.shape[: imp.obs_n.ndim - 1 - len(topo.view)]
+    on = imp.obs_n.reshape(lead + (q, topo.n))
+    ot = imp.obs_t.reshape(lead + (q, dim, topo.n))
+    if topo.order is not None:
+        on, ot = jnp.take(on, topo.pos, axis=-1), jnp.take(ot, topo.pos, axis=-1)
+    ns = [on.reshape(lead + (q * topo.n,))]
+    ts = [jnp.swapaxes(ot, -1, -2).reshape(lead + (q * topo.n, dim))]
+    if ct.n_pairs:
+        pn = imp.pair_n.reshape(lead + (-1,))
+        pt = imp.pair_t.reshape(lead + (dim, -1))
+        ns.append(jnp.take(pn, ct.slot.array, axis=-1))
+        ts.append(jnp.swapaxes(jnp.take(pt, ct.slot.array, axis=-1), -1, -2))
+    return jnp.concatenate(ns, -1), jnp.concatenate(ts, -2)
+
+
+# ---- rows ------------------------------------------------------------------------------------------------------
+def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h):
+    """Target velocity of contacts with gap C, normal velocity vn0 at the start of the step and vn1 after the
+    external forces, and an impact at `toi` where `impact` (module docstring).
+
+    Within an impact step the approach velocity is taken to change linearly, vn0 + (vn1 - vn0) t / h, so the
+    impact speed u depends on the time of impact, and the forces keep acting for the rest of the step after the
+    bounce: target = max(e u + (vn1 - vn0) (h - toi) / h, 0). This keeps the map from one state to the next
+    continuous where the impact moves from one step to the next (at toi = h and toi = 0 both sides give the
+    same state), and gives the time-of-impact dependence of u its right derivative (du/dC = a / |vn1|).
+    A separated contact that is not an impact gets the speculative target -C_spec / h, C_spec its gap along
+    the row's normal."""
+    dv = vn1 - vn0
+    u = -(vn0 + dv * toi / h)
+    bounce = jnp.where(u > cs.threshold, cs.restitution * u, 0)
+    after = jnp.maximum(bounce + dv * (h - toi) / h, 0)
+    return jnp.where(C > 0, jnp.where(impact, after, -C_spec / h), jnp.maximum(after, -beta * C / h))
+
+
+def _swept(d, u, R, h):
+    """Contact of two spheres (or a sphere and a point) whose centres are `d` apart ([dim, ...], from the first
+    to the second) and move apart at the constant relative velocity `u` over the step, touching at distance R.
+
+    Returns (n, C, C_n, hit, impact, toi): C = |d| - R; `hit` where the straight-line paths come within R
+    inside the step, at time toi (the smaller root of |d + t u| = R, in a cancellation-free form); n the unit
+    normal at the time of impact where `hit`, else at the start, and C_n = n . d - R the gap along it.
+    `impact` starts equal to `hit` (`_first_impacts` may clear it). Using the normal at impact, not a
+    linearised gap along the start normal, is what catches glancing impacts of balls that move several
+    diameters per step."""
+    dist, n0 = L.safe_norm(d, axis=0)
+    C = dist - R
+    uu = jnp.sum(u * u, 0)
+    du = jnp.sum(d * u, 0)
+    disc = du * du - uu * (C * (dist + R))
+    hit = (C > 0) & (du < 0) & (disc > 0)
+    root = jnp.sqrt(jnp.where(hit, disc, 1))
+    t = C * (dist + R) / jnp.where(hit, root - du, 1)
+    hit = hit & (t < h)
+    toi = jnp.where(hit, t, 0)
+    _, n_hit = L.safe_norm(d + toi * u, axis=0)
+    n = jnp.where(hit, n_hit, n0)
+    return n, C, jnp.sum(n * d, 0) - R, hit, hit, toi
+
+
+def _obstacle_geometry(cs: ContactSystem, x, v, h):
+    """(n [Q, dim, *view], C, impact, toi [Q, *view]) of every particle against every plane, then every
+    sphere, for particles moving at `v` over the step."""
+    ct, dim, nview = cs.ct, x.shape[0], x.ndim - 1
+    out = []
+    r = cs.radius[0]
+    for p in range(ct.n_planes):
+        nrm = jnp.broadcast_to(cs.plane_normal[p].reshape((dim,) + (1,) * nview), x.shape)
+        C = jnp.sum(nrm * x, 0) - cs.plane_offset[p] - r
+        vn = jnp.sum(nrm * v, 0)
+        impact = (C > 0) & (C + h * vn < 0)
+        out.append((nrm, C, C, impact, impact, jnp.where(impact, C / jnp.where(impact, -vn, 1), 0)))
+    for s in range(ct.n_spheres):
+        d = x - cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
+        out.append(_swept(d, v, cs.sphere_radius[s] + r, h))
+    return tuple(jnp.stack(a) for a in zip(*out))
+
+
+def _first_impacts(ct, obs, pairs, n_particles):
+    """Keep an impact only if it is the first, within the step, of each particle it involves: a ball that hits
+    another cannot also hit, on its unobstructed path, the ball behind it or the cushion beyond. The later
+    ones stay speculative contacts along their normal at impact (no bounce, no time of impact). `obs`/`pairs`:
+    (n, C, C_n, hit, impact, toi) or None. Returns them with `impact` updated."""
+    inf = jnp.inf
+    ref = (obs if obs is not None else pairs)[5]
+    first = jnp.full((n_particles,), inf, ref.dtype)
+    if obs is not None:
+        first = jnp.min(jnp.where(obs[3], obs[5], inf).reshape(obs[5].shape[0], -1), axis=0)
+    if pairs is not None:
+        ia, ja = ct.i.array.reshape(-1), ct.j.array.reshape(-1)
+        t = jnp.where(pairs[3], pairs[5], inf).reshape(-1)
+        first = first.at[ia].min(t).at[ja].min(t)
+        keep = ((t <= first[ia]) & (t <= first[ja])).reshape(pairs[3].shape)
+        pairs = pairs[:4] + (pairs[3] & keep, pairs[5])
+    if obs is not None:
+        keep = obs[5] <= first.reshape((1,) + obs[5].shape[1:])
+        obs = obs[:4] + (obs[3] & keep, obs[5])
+    return obs, pairs
+
+
+def rows(cs: ContactSystem, w, x, v0, v, beta, h):
+    """Contact rows at the start of a (sub)step: (obstacle Rows or None, pair Rows or None). `v0` is the
+    velocity at the start of the step, `v` after the external forces and before any impulse."""
+    ct, dim = cs.ct, x.shape[0]
+    xf, vf, v0f, wf = x.reshape(dim, -1), v.reshape(dim, -1), v0.reshape(dim, -1), w.reshape(-1)
+    obs = _obstacle_geometry(cs, x, v, h) if ct.n_obstacles else None
+    pairs = None
+    if ct.n_pairs:
+        ia, ja = ct.i.array, ct.j.array
+        pairs = _swept(xf[:, ja] - xf[:, ia], vf[:, ja] - vf[:, ia], cs.radius_flat[ia] + cs.radius_flat[ja], h)
+    obs, pairs = _first_impacts(ct, obs, pairs, xf.shape[1])
+
+    def finish(geometry, vn0, vn1, winv, k):
+        n, C, C_n, _, impact, toi = geometry
+        toi = jnp.where(impact, toi, 0)
+        return Rows(n, _targets(C, C_n, vn0, vn1, impact, toi, cs, beta, h), k, winv, toi, C)
+
+    if obs is not None:
+        n = obs[0]
+        winv = jnp.broadcast_to(w[0], obs[1].shape)
+        obs = finish(obs, jnp.sum(n * v0[None], 1), jnp.sum(n * v[None], 1), winv, L.safe_reciprocal(winv))
+    if pairs is not None:
+        n = pairs[0]
+        winv = wf[ia] + wf[ja]
+        k = L.safe_reciprocal(winv) * jnp.asarray(ct.valid.array, winv.dtype)
+        vn0, vn1 = (jnp.sum(n * (a[:, ja] - a[:, ia]), 0) for a in (v0f, vf))
+        pairs = finish(pairs, vn0, vn1, winv, k)
+    return obs, pairs
+
+
+def _solve_row(vrel, f: Rows, mu, ln, lt):
+    """One contact row: normal impulse (clamped >= 0), then friction (clamped to the disc mu lam_n). Returns
+    (impulse change P [dim, ...] on the second body, new lam_n, new lam_t)."""
+    vn = jnp.sum(vrel * f.n, 0)
+    new_n = jnp.maximum(ln + (f.target - vn) * f.k, 0)
+    dn = new_n - ln
+    vrel = vrel + (f.winv * dn) * f.n
+    vt = vrel - f.n * jnp.sum(vrel * f.n, 0)
+    new_t = lt - vt * f.k
+    length, inv = L.safe_length(new_t)
+    limit = mu * new_n
+    new_t = new_t * jnp.where(length >= limit, limit * inv, 1)
+    return f.n * dn + (new_t - lt), new_n, new_t
+
+
+def _pair_apply(ct, v, r, wi, wj, P):
+    """v [dim, n] plus the velocity changes of round r's impulses P [dim, S] (-wi P on i, +wj P on j)."""
+    zero = jnp.zeros((v.shape[0], 1), v.dtype)
+    src = jnp.asarray(ct.src.array)[r]
+    return v + jnp.take(jnp.concatenate([-wi * P, wj * P, zero], -1), src, axis=-1)
+
+
+def sweep(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, imp: Impulses):
+    """One Gauss-Seidel pass over every contact: obstacles one after another (each over all particles at
+    once), then the pair rounds in a loop. Returns (v, imp)."""
+    ct, mu = cs.ct, cs.friction
+    on, ot = imp.obs_n, imp.obs_t
+    if obs is not None:
+        on, ot = list(on), list(ot)
+        for q in range(ct.n_obstacles):
+            f = Rows(*(a[q] for a in obs))
+            P, on[q], ot[q] = _solve_row(v, f, mu, on[q], ot[q])
+            v = v + w * P
+        on, ot = jnp.stack(on), jnp.stack(ot)
+    pn, pt = imp.pair_n, imp.pair_t
+    if pairs is not None:
+        dim, shape = v.shape[0], v.shape
+        ia, ja = jnp.asarray(ct.i.array), jnp.asarray(ct.j.array)
+        wf = w.reshape(-1)
+
+        def one_round(r, carry):
+            vf, pn, pt = carry
+            i, j = ia[r], ja[r]
+            f = Rows(pairs.n[:, r], pairs.target[r], pairs.k[r], pairs.winv[r], pairs.toi[r], pairs.gap[r])
+            P, ln, lt = _solve_row(vf[:, j] - vf[:, i], f, mu, pn[r], pt[:, r])
+            vf = _pair_apply(ct, vf, r, wf[i], wf[j], P)
+            return vf, pn.at[r].set(ln), pt.at[:, r].set(lt)
+
+        vf, pn, pt = lax.fori_loop(0, ct.rounds, one_round, (v.reshape(dim, -1), pn, pt))
+        v = vf.reshape(shape)
+    return v, Impulses(on, ot, pn, pt)
+
+
+def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, factor=1.0):
+    """Apply last step's contact impulses to contacts that touch or will touch within this step, re-projected
+    on the new normals (lam_n >= 0, friction inside the new cone). Returns (v, imp)."""
+    ct, mu = cs.ct, cs.friction
+
+    def project(f: Rows, ln, lt):
+        active = ((f.gap <= 0) | (f.toi > 0)) & (f.k > 0)
+        ln = jnp.maximum(ln, 0) * factor * active.astype(ln.dtype)
+        lt = (lt - f.n * jnp.sum(lt * f.n, 0)) * factor
+        length, inv = L.safe_length(lt)
+        limit = mu * ln
+        return ln, lt * jnp.where(length >= limit, limit * inv, 1) * active.astype(ln.dtype)
+
+    on, ot = prev.obs_n, prev.obs_t
+    if obs is not None:
+        on, ot = project(obs._replace(n=jnp.moveaxis(obs.n, 1, 0)), on, jnp.moveaxis(ot, 1, 0))
+        ot = jnp.moveaxis(ot, 0, 1)          # back to [Q, dim, *view]
+        v = v + w * jnp.sum(obs.n * on[:, None] + ot, 0)
+    pn, pt = prev.pair_n, prev.pair_t
+    if pairs is not None:
+        pn, pt = project(pairs, pn, pt)
+        P = pairs.n * pn + pt
+        v = v + _pair_total(ct, w, P, sign_i=-1.0).reshape(v.shape)
+    return v, Impulses(on, ot, pn, pt)
+
+
+def _pair_total(ct, w, P, sign_i):  # noqa: D401
+    """Sum over every pair slot of +w_j P on j and sign_i * w_i P on i: [dim, n] (a scatter-add)."""
+    dim = P.shape[0]
+    wf = w.reshape(-1)
+    ia, ja = ct.i.array.reshape(-1), ct.j.array.reshape(-1)
+    Pf = P.reshape(dim, -1)
+    out = jnp.zeros((dim, wf.shape[0]), P.dtype)
+    return out.at[:, ja].add(wf[ja] * Pf).at[:, ia].add(sign_i * wf[ia] * Pf)
+
+
+#: Passes that carry a time of impact across touching contacts (a ball hit in a rack passes the impulse on
+#: through up to this many touching neighbours within the same step).
+TOI_PASSES = 8
+
+
+def impact_times(cs: ContactSystem, obs: Rows, pairs: Rows, imp: Impulses, shape):
+    """Per-particle time [1, *view] at which its velocity changed within the step: the time of impact of the
+    impacts it takes part in (with an impulse), carried on through contacts that touch at the start of the step
+    and push (a rack hit by the cue ball: the whole cluster's velocities change at the cue ball's impact), 0 for
+    particles no impact reaches."""
+    tau = jnp.zeros(shape[1:], obs.toi.dtype if obs is not None else pairs.toi.dtype)
+    if obs is not None:
+        hit = (obs.toi > 0) & (imp.obs_n > 0)
+        tau = jnp.max(jnp.where(hit, obs.toi, 0), axis=0)
+    if pairs is None:
+        return tau[None]
+    ct = cs.ct
+    ia, ja = ct.i.array.reshape(-1), ct.j.array.reshape(-1)
+    push = (imp.pair_n > 0).reshape(-1)
+    toi = jnp.where(push, pairs.toi.reshape(-1), 0)
+    flat = tau.reshape(-1)
+    flat = flat.at[ia].max(toi).at[ja].max(toi)
+    touching = push & (pairs.toi.reshape(-1) == 0)
+
+    def carry(_, t):
+        across = jnp.where(touching, jnp.maximum(t[ia], t[ja]), 0)
+        return t.at[ia].max(across).at[ja].max(across)
+
+    flat = lax.fori_loop(0, TOI_PASSES, carry, flat)
+    return flat.reshape((1,) + shape[1:])
+
+
+def project_overlaps(cs: ContactSystem, w, x, passes: int = 1):
+    """Move overlapping contacts apart at position level (non-linear Gauss-Seidel, as Box2D v2's position
+    solver), `passes` times: obstacles, then pair rounds. Velocities are not touched, so no kinetic energy or
+    momentum is added; it only acts where the velocity solve left an overlap (an under-converged cluster, or
+    the time-of-impact correction of a particle whose velocity was also changed by a later contact)."""
+    ct = cs.ct
+    dim, shape = x.shape[0], x.shape
+    r = cs.radius[0]
+    k = L.safe_reciprocal(w[0])
+
+    def obstacles(x):
+        for p in range(ct.n_planes):
+            nrm = cs.plane_normal[p].reshape((dim,) + (1,) * (x.ndim - 1))
+            C = jnp.sum(nrm * x, 0) - cs.plane_offset[p] - r
+            x = x + nrm * (jnp.maximum(-C, 0) * (k > 0))
+        for q in range(ct.n_spheres):
+            d = x - cs.sphere_centre[q].reshape((dim,) + (1,) * (x.ndim - 1))
+            dist, n = L.safe_norm(d, axis=0)
+            C = dist - cs.sphere_radius[q] - r
+            x = x + n * (jnp.maximum(-C, 0) * (k > 0))
+        return x
+
+    def pair_rounds(x):
+        ia, ja = jnp.asarray(ct.i.array), jnp.asarray(ct.j.array)
+        valid = jnp.asarray(ct.valid.array)
+        wf, rf = w.reshape(-1), cs.radius_flat
+
+        def one_round(q, xf):
+            i, j = ia[q], ja[q]
+            dist, n = L.safe_norm(xf[:, j] - xf[:, i], axis=0)
+            winv = wf[i] + wf[j]
+            push = jnp.maximum(rf[i] + rf[j] - dist, 0) * L.safe_reciprocal(winv) * valid[q]
+            return _pair_apply(ct, xf, q, wf[i], wf[j], n * push)
+
+        return lax.fori_loop(0, ct.rounds, one_round, x.reshape(dim, -1)).reshape(shape)
+
+    for _ in range(passes):
+        if ct.n_obstacles:
+            x = obstacles(x)
+        if ct.n_pairs:
+            x = pair_rounds(x)
+    return x
+
+
+def zero_impulses(topo: Topology, ct: ContactTopology, dtype) -> Impulses:
+    q, dim = ct.n_obstacles, topo.dim
+    return Impulses(jnp.zeros((q,) + topo.view, dtype), jnp.zeros((q, dim) + topo.view, dtype),
+                    jnp.zeros((ct.rounds, ct.width), dtype), jnp.zeros((dim, ct.rounds, ct.width), dtype))
+
