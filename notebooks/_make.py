@@ -230,6 +230,137 @@ plt.tight_layout()'''),
 ]
 
 
+NB04 = [
+    ("md", "# 04 - Contacts: bounces, a drape and a differentiable billiards shot\n\nContacts are unilateral "
+           "constraints on a gap, solved by `jc.PGS` with friction, restitution and a time-of-impact correction "
+           "(docs/contacts.md). This notebook checks a bounce against `e^2k`, drapes a cloth over a sphere, "
+           "breaks a rack, and fits a cue ball's velocity by gradient descent so that a chosen ball stops on a "
+           "target, as in DiffTaichi's billiards."),
+    ("code", SETUP + "\nimport optax"),
+    ("md", "## A bouncing ball: heights against e^2k\n\nThe height of each flight's top is read from the state "
+           "just after the bounce (`y + v^2 / 2g`, exact for a ballistic flight). The error per bounce is "
+           "first order in dt."),
+    ("code", '''e, h0, r = 0.8, 0.9, 0.1
+fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+for dt in ((1 / 500, 1 / 2000) if SMALL else (1 / 250, 1 / 1000, 1 / 4000)):
+    model, state = jc.build(np.array([[0.0, h0 + r]]), 1.0, radius=r, planes=[((0.0, 1.0), 0.0)],
+                            restitution=e, restitution_threshold=0.01)
+    steps = int(2.5 / dt)
+    _, traj = jc.rollout(model, state, jc.PGS(10), dt, steps)
+    y, v = np.asarray(traj.x[:, 0, 1]) - r, np.asarray(traj.v[:, 0, 1])
+    after = np.nonzero((v[1:] > 0) & (v[:-1] <= 0))[0] + 1
+    apex = (y[after] + v[after] ** 2 / (2 * 9.81))[:6]
+    axes[0].plot(dt * np.arange(1, steps + 1), y, lw=1, label=f"dt = 1/{round(1 / dt)}")
+    k = np.arange(1, len(apex) + 1)
+    axes[1].semilogy(k, apex / h0, "o-", label=f"dt = 1/{round(1 / dt)}")
+    print(f"dt 1/{round(1 / dt)}: height ratios / e^2 - 1 =",
+          np.round(apex / np.concatenate([[h0], apex[:-1]]) / e ** 2 - 1, 4))
+k = np.arange(1, 7)
+axes[1].semilogy(k, e ** (2 * k), "k--", label="e^(2k)")
+axes[0].set_title(f"Ball dropped from {h0} m, e = {e}"); axes[0].set_xlabel("t (s)"); axes[0].set_ylabel("gap (m)")
+axes[1].set_title("Height of the k-th bounce / initial height"); axes[1].set_xlabel("bounce k")
+axes[0].legend(); axes[1].legend()
+plt.tight_layout()'''),
+    ("md", "## A cloth draped over a sphere\n\nA free 16x16 cloth (8x8 reduced) falls from 1 m onto a sphere of "
+           "radius 0.3 m resting on the floor. The right panel is the deepest overlap with the sphere, as a "
+           "fraction of its radius (the issue's bound is 1%)."),
+    ("code", '''n = 8 if SMALL else 16
+model, state = jc.scenes.drape(n=n)
+dt, steps = 1 / 240, (240 if SMALL else 480)
+t0 = time.perf_counter()
+_, traj = jc.rollout(model, state, jc.PGS(10), dt, steps)
+print(f"{model}: {steps} steps in {time.perf_counter() - t0:.1f} s (compile included)")
+x = np.asarray(traj.x)
+R, rad = float(model.sphere_radius[0]), float(model.radius[0])
+c = np.asarray(model.sphere_centre[0])
+overlap = (R + rad - np.linalg.norm(x - c, axis=-1)).max(-1) / R
+frames = [0, steps // 4, steps // 2, steps - 1]
+fig = plt.figure(figsize=(14, 3.6))
+u, w = np.mgrid[0:2 * np.pi:24j, 0:np.pi:12j]
+for a, f in enumerate(frames):
+    ax = fig.add_subplot(1, len(frames) + 1, a + 1, projection="3d")
+    ax.plot_wireframe(c[0] + R * np.cos(u) * np.sin(w), c[1] + R * np.sin(u) * np.sin(w), c[2] + R * np.cos(w),
+                      color="grey", lw=0.3)
+    ax.scatter(x[f, :, 0], x[f, :, 1], x[f, :, 2], s=4, c=x[f, :, 2], cmap="viridis")
+    ax.set_xlim(-0.6, 0.6); ax.set_ylim(-0.6, 0.6); ax.set_zlim(0, 1.1); ax.set_title(f"t = {(f + 1) * dt:.2f} s")
+ax = fig.add_subplot(1, len(frames) + 1, len(frames) + 1)
+ax.plot(dt * np.arange(1, steps + 1), 100 * np.maximum(overlap, 0))
+ax.axhline(1.0, color="k", ls="--", lw=0.8); ax.set_xlabel("t (s)"); ax.set_ylabel("overlap / R (%)")
+ax.set_title("Deepest overlap with the sphere")
+plt.tight_layout()
+print(f"deepest overlap: {100 * overlap.max():.3f}% of R")'''),
+    ("md", "## A break\n\n16 balls (regulation radius and mass), cushions as planes, no table friction, the cue "
+           "ball at 10 m/s, dt = 1/60, `PGS(20)`. Momentum is conserved until the first cushion contact, and no "
+           "step gains kinetic energy."),
+    ("code", '''model, state = jc.scenes.billiards()
+dt, steps = 1 / 60, 120
+_, traj = jc.rollout(model, state, jc.PGS(20), dt, steps)
+x = np.concatenate([np.asarray(state.x)[None], np.asarray(traj.x)])
+v = np.concatenate([np.asarray(state.v)[None], np.asarray(traj.v)])
+ke = 0.5 * jc.scenes.BALL_MASS * (v ** 2).sum((1, 2))
+p = jc.scenes.BALL_MASS * v.sum(1)
+n = model.n_particles
+first = int(np.argmax(np.asarray(traj.contact_n)[:, : 4 * n].max(1) > 0))
+d = np.linalg.norm(x[:, :, None] - x[:, None], axis=-1) + np.eye(n)
+print(f"first cushion contact at step {first}; momentum change before it: {np.abs(p[:first + 1] - p[0]).max():.1e} "
+      f"N s; largest kinetic energy increase in a step: {np.diff(ke).max():.1e} J; deepest overlap: "
+      f"{100 * max(0.0, (2 * jc.scenes.BALL_RADIUS - d).max()) / (2 * jc.scenes.BALL_RADIUS):.3f}% of a diameter")
+fig, axes = plt.subplots(1, 3, figsize=(15, 3.8), gridspec_kw={"width_ratios": [2, 1, 1]})
+L_, W = jc.scenes.TABLE
+for k in range(n):
+    axes[0].plot(x[:, k, 0], x[:, k, 1], lw=0.8, color="k" if k == 0 else None)
+    axes[0].add_patch(plt.Circle(x[-1, k], jc.scenes.BALL_RADIUS, fill=k == 0, color="k" if k == 0 else "C1"))
+axes[0].set_xlim(0, L_); axes[0].set_ylim(0, W); axes[0].set_aspect("equal"); axes[0].set_title("Paths over 2 s")
+t = dt * np.arange(steps + 1)
+axes[1].plot(t, ke); axes[1].set_title("Kinetic energy (J)"); axes[1].set_xlabel("t (s)")
+axes[2].plot(t, p[:, 0], label="p_x"); axes[2].plot(t, p[:, 1], label="p_y")
+axes[2].axvline(first * dt, color="grey", ls="--", lw=0.8, label="first cushion")
+axes[2].set_title("Momentum (N s)"); axes[2].set_xlabel("t (s)"); axes[2].legend(fontsize=8)
+plt.tight_layout()'''),
+    ("md", "## A differentiable shot\n\nThree racked balls and the cue ball. The target is where ball 2 stops "
+           "after 1 s for a shot of (3.5, 0.08) m/s; gradient descent (Adam) on the cue ball's velocity, "
+           "starting from a straight shot at 3 m/s, looks for a shot that puts ball 2 there. The impacts' times "
+           "of impact are in the gradient: without them the final positions would not depend smoothly on the "
+           "aim. The landscape is not convex (a shot that misses the rack has zero gradient), so the fit keeps "
+           "its best iterate."),
+    ("code", '''model, state = jc.scenes.billiards(rows=2, friction=0.0)
+dt, steps, ball = 1 / 120, 120, 2
+
+def final_positions(v0):
+    final, _ = jc.rollout(model, state.replace(v=state.v.at[0].set(v0)), jc.PGS(10), dt, steps, save_every=steps)
+    return final.x
+
+target = final_positions(jnp.array([3.5, 0.08]))[ball]
+loss_and_grad = jax.jit(jax.value_and_grad(lambda v0: jnp.sum((final_positions(v0)[ball] - target) ** 2)))
+opt = optax.adam(optax.exponential_decay(0.05, 50, 0.5))
+v0 = jnp.array([3.0, 0.0])
+opt_state = opt.init(v0)
+history, best = [], (np.inf, v0)
+t0 = time.perf_counter()
+for it in range(40 if SMALL else 150):
+    loss, g = loss_and_grad(v0)
+    history.append(float(loss))
+    best = min(best, (float(loss), v0), key=lambda b: b[0])
+    updates, opt_state = opt.update(g, opt_state)
+    v0 = optax.apply_updates(v0, updates)
+print(f"{len(history)} gradient steps in {time.perf_counter() - t0:.1f} s (compile included); best loss "
+      f"{best[0]:.2e} m^2 at v0 = {np.round(np.asarray(best[1]), 4)} (target shot (3.5, 0.08))")'''),
+    ("code", '''fig, axes = plt.subplots(1, 2, figsize=(13, 4), gridspec_kw={"width_ratios": [1, 2]})
+axes[0].semilogy(history); axes[0].set_xlabel("gradient step"); axes[0].set_ylabel("|x_ball(T) - target|^2 (m^2)")
+axes[0].set_title("Fitting the shot")
+_, traj = jc.rollout(model, state.replace(v=state.v.at[0].set(best[1])), jc.PGS(10), dt, steps)
+x = np.asarray(traj.x)
+for k in range(model.n_particles):
+    color = "k" if k == 0 else ("C3" if k == ball else "C1")
+    axes[1].plot(x[:, k, 0], x[:, k, 1], color=color, lw=1)
+    axes[1].add_patch(plt.Circle(x[-1, k], jc.scenes.BALL_RADIUS, fill=False, color=color))
+axes[1].plot(*np.asarray(target), "C3x", ms=12, label="target")
+axes[1].set_xlim(0, jc.scenes.TABLE[0]); axes[1].set_ylim(0, jc.scenes.TABLE[1]); axes[1].set_aspect("equal")
+axes[1].set_title("The fitted shot (cue ball black, ball 2 red)"); axes[1].legend()
+plt.tight_layout()'''),
+]
+
+
 def notebook(cells):
     out = []
     for kind, src in cells:
@@ -245,7 +376,8 @@ def notebook(cells):
             "nbformat": 4, "nbformat_minor": 5}
 
 
-NOTEBOOKS = (("01_constraints", NB01), ("02_speed_vs_error", NB02), ("03_system_identification", NB03))
+NOTEBOOKS = (("01_constraints", NB01), ("02_speed_vs_error", NB02), ("03_system_identification", NB03),
+             ("04_contacts", NB04))
 
 
 def build(name, cells) -> dict:
