@@ -72,6 +72,19 @@ def violation(model: Model, x):
     return err / jnp.where(L > 0, L, 1)
 
 
+def contact_sizes(model: Model):
+    """[k] the size each contact's overlap is measured against: the particle's radius for obstacles, the sum
+    of radii for pairs ([0] without contacts)."""
+    c = model.contact
+    if c is None:
+        return jnp.zeros((0,))
+    r = jnp.asarray(model.radius)
+    parts = [jnp.tile(r, c.n_obstacles)]
+    if c.n_pairs:
+        parts.append(r[c.pairs.array[:, 0]] + r[c.pairs.array[:, 1]])
+    return jnp.concatenate(parts)
+
+
 def penetration(model: Model, x):
     """Overlap depth (m, >= 0) of every contact [..., k], in the order of `State.contact_n`: planes
     (max(offset + r - n . x, 0)), spheres (max(R + r - |x - c|, 0)), then pairs (max(r_i + r_j - |x_j - x_i|, 0)).
@@ -100,6 +113,11 @@ def penetration(model: Model, x):
 VIOLATION_LIMIT = 1.0
 
 
+#: ... or when a contact overlaps by more than this fraction of its size (`contact_sizes`: a particle's centre
+#: behind a plane or inside a sphere, or two centres that met: the contact has been passed through).
+PENETRATION_LIMIT = 1.0
+
+
 #: ... or when its total energy rose above the initial energy by more than this many energy scales, the scale
 #: being ``KE_0 + M |g| sum(L)`` (the initial kinetic energy plus the potential energy all free mass would
 #: release by falling the total rest length of the model), floored at the machine tiny.
@@ -112,7 +130,8 @@ class Diagnosis(NamedTuple):
       violation:   [steps] largest relative constraint violation (``jc.violation``) of each step.
       energy:      [steps] total mechanical energy (J) after each step.
       energy_gain: [steps] (E - E_0) / energy scale (see ENERGY_LIMIT).
-      bad:         [steps] bool, the step is non-finite, over VIOLATION_LIMIT or over ENERGY_LIMIT.
+      bad:         [steps] bool, the step is non-finite, over VIOLATION_LIMIT, ENERGY_LIMIT or
+                   PENETRATION_LIMIT.
       diverged:    bool, some step is bad.
       first_bad:   int, index of the first bad step, or -1.
       penetration: [steps] deepest contact overlap (m) of each step (``jc.penetration``); 0 without contacts.
@@ -132,8 +151,9 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
 
     `state0` (the rollout's initial state) sets the reference energy E_0 and its kinetic energy; without it
     the first recorded step is the reference. A step is *bad* when any of its x, v, lam is non-finite, when
-    its largest relative violation exceeds VIOLATION_LIMIT (1.0), or when its energy exceeds E_0 by more than
-    ENERGY_LIMIT (10) energy scales. NaNs compare as bad. Callable under jax.jit.
+    its largest relative violation exceeds VIOLATION_LIMIT (1.0), when its energy exceeds E_0 by more than
+    ENERGY_LIMIT (10) energy scales, or when a contact of nonzero size overlaps by more than PENETRATION_LIMIT
+    (1.0) of its size. NaNs compare as bad. Callable under jax.jit.
     """
     if not isinstance(model, Model):
         raise TypeError(f"diagnose: `model` must be a jaxcon Model, got {type(model).__name__}")
@@ -175,8 +195,13 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
     finite = (jnp.all(jnp.isfinite(x), axis=(-1, -2)) & jnp.all(jnp.isfinite(v), axis=(-1, -2))
               & jnp.all(jnp.isfinite(traj.lam), axis=-1))
     ok = finite & (viol <= VIOLATION_LIMIT) & (gain <= ENERGY_LIMIT)
+    pen = penetration(model, x)
+    if pen.shape[-1]:
+        size = contact_sizes(model)
+        ok = ok & jnp.all((pen <= PENETRATION_LIMIT * size) | (size <= 0), axis=-1)
+        pen = jnp.max(pen, -1)
+    else:
+        pen = jnp.zeros(x.shape[:1], x.dtype)
     bad = ~ok
     first = jnp.where(jnp.any(bad), jnp.argmax(bad), -1)
-    pen = penetration(model, x)
-    pen = jnp.max(pen, -1) if pen.shape[-1] else jnp.zeros(x.shape[:1], x.dtype)
     return Diagnosis(viol, e, gain, bad, jnp.any(bad), first, pen)

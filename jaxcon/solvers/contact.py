@@ -390,10 +390,10 @@ def project_overlaps(cs: ContactSystem, w, x, passes: int = 1):
         return lax.fori_loop(0, ct.rounds, one_round, x.reshape(dim, -1)).reshape(shape)
 
     for _ in range(passes):
-        if ct.n_obstacles:
-            x = obstacles(x)
         if ct.n_pairs:
             x = pair_rounds(x)
+        if ct.n_obstacles:
+            x = obstacles(x)
     return x
 
 
