@@ -355,9 +355,11 @@ def impact_times(cs: ContactSystem, obs: Rows, pairs: Rows, imp: Impulses, shape
 
 def project_overlaps(cs: ContactSystem, w, x, passes: int = 1):
     """Move overlapping contacts apart at position level (non-linear Gauss-Seidel, as Box2D v2's position
-    solver), `passes` times: obstacles, then pair rounds. Velocities are not touched, so no kinetic energy or
-    momentum is added; it only acts where the velocity solve left an overlap (an under-converged cluster, or
-    the time-of-impact correction of a particle whose velocity was also changed by a later contact)."""
+    solver), `passes` times: pair rounds, then obstacles (which cannot move, so they have the last word; a heavy
+    ball on light ones is then pushed out of them without pushing the bottom one into the floor). Velocities
+    are not touched, so no kinetic energy or momentum is added; it only acts where the velocity solve left an
+    overlap (an under-converged cluster, or the time-of-impact correction of a particle whose velocity was
+    also changed by a later contact)."""
     ct = cs.ct
     dim, shape = x.shape[0], x.shape
     r = cs.radius[0]
