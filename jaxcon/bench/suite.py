@@ -162,11 +162,13 @@ def _best_double_pendulum(repeats: int) -> dict:
 def batched(small: bool, repeats: int) -> list:
     """Batched rollouts of many systems on every backend found: jax.vmap of rollout, jc.batched_rollout (sharded
     over the backend's devices), and the plain batch-minor reference measured in the same run; system-steps
-    (pendulum-steps, cloth-steps) per second."""
+    (pendulum-steps, cloth-steps, billiards-steps: one step of a 16-ball table) per second. Models with contacts
+    are batched by jax.vmap inside batched_rollout (docs/contacts.md)."""
     from jaxcon.bench.throughput import backends, batched_throughput
 
     steps = 24 if small else 240
-    cases = [("double_pendulum", (1, 64) if small else (1, 1024, 16384)), ("cloth", (2,) if small else (64,))]
+    cases = [("double_pendulum", (1, 64) if small else (1, 1024, 16384)), ("cloth", (2,) if small else (64,)),
+             ("billiards", (2,) if small else (64, 256))]
     rows = []
     for backend in backends():
         print(f"\nbatched rollouts over initial states, PGS(10), {steps} steps, float32, final state only; backend "
@@ -181,7 +183,7 @@ def batched(small: bool, repeats: int) -> list:
                 ref = {r["mode"]: r["system_steps_per_s"] for r in got}.get("reference")
                 for r in got:
                     r["vs_reference"] = None if ref is None else r["system_steps_per_s"] / ref
-                    name = "cloth_16x16" if scene == "cloth" else scene
+                    name = {"cloth": "cloth_16x16", "billiards": "billiards_16"}.get(scene, scene)
                     vs = "" if ref is None else f"{r['vs_reference']:.2f}x"
                     print(f"{name:18s} {r['batch']:6d} {r['mode']:>16s} {r['devices']:7d} {r['compile_s']:9.2f} "
                           f"{r['run_s']:9.4f} {r['system_steps_per_s']:15.3g} {vs:>12s}")

@@ -29,8 +29,12 @@ def _batch(scene, batch, dtype):
             v = np.zeros_like(np.asarray(state.x))
             v[:, 2] = rng.uniform(-1, 1)
             states.append(State(state.x, v.astype(dtype), state.lam))
+    elif scene == "billiards":
+        model, _ = scenes.billiards(dtype=dtype)
+        states = [scenes.billiards(speed=sp, angle=a, dtype=dtype)[1]
+                  for sp, a in zip(rng.uniform(5, 12, min(batch, 64)), rng.uniform(-0.05, 0.05, min(batch, 64)))]
     else:
-        raise ValueError(f"batched_throughput: unknown scene {scene!r} ('double_pendulum' or 'cloth')")
+        raise ValueError(f"batched_throughput: unknown scene {scene!r} ('double_pendulum', 'cloth' or 'billiards')")
     stacked = jax.tree.map(lambda *a: jnp.stack([jnp.asarray(x) for x in a]), *states)
     reps = -(-batch // len(states))
     state = jax.tree.map(lambda a: jnp.concatenate([a] * reps)[:batch], stacked)
@@ -58,7 +62,8 @@ def batched_throughput(batch_sizes: Sequence[int] = (1, 64, 1024, 16384), steps:
                        dtype=np.float32, repeats: int = 5, modes: Sequence[str] = MODES, chunk: Optional[int] = None,
                        backend: Optional[str] = None):
     """Time batched rollouts over batches of initial states (different initial angles for the double
-    pendulum, different initial vertical velocities for the 16x16 cloth), final state only, after compilation.
+    pendulum, different initial vertical velocities for the 16x16 cloth, different break speeds and angles for
+    the 16-ball billiards), final state only, after compilation.
 
     modes: "vmap" (`jax.jit(jax.vmap(rollout))`), "batched_rollout" (`jc.batched_rollout` with its defaults,
     or `chunk`), "reference" (the plain batch-minor PGS of `bench.references.batch_minor_pgs`, double pendulum
