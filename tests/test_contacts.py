@@ -336,3 +336,19 @@ def test_billiards_shot_gradient_matches_differences_even_head_on():
         fd = [(float(loss(v0 + e)) - float(loss(v0 - e))) / 2e-6 for e in 1e-6 * jnp.eye(2)]
         np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6)
         assert abs(g[1]) > 1                                         # the aim matters
+
+
+def test_fit_recovers_restitution_from_a_bouncing_ball():
+    def make(e):
+        return jc.build(np.array([[0.0, 0.6]]), 1.0, velocities=np.array([[2.0, 0.0]]), radius=0.1,
+                        planes=[((0.0, 1.0), 0.0)], restitution=e, friction=0.3, restitution_threshold=0.2)
+
+    truth, state = make(0.7)
+    _, traj = jc.rollout(truth, state, jc.PGS(10), 1 / 240, 360)
+    guess, _ = make(0.5)
+    r = jc.fit(guess, state, jc.PGS(10), 1 / 240, traj.x, params=("restitution",), progress=False)
+    assert r.converged and abs(float(r.params["restitution"]) - 0.7) < 1e-4
+    chain, cstate = jc.scenes.chain(n_links=2)
+    _, ctraj = jc.rollout(chain, cstate, jc.PGS(10), 1 / 240, 20)
+    with pytest.raises(ValueError, match="restitution.*not set"):
+        jc.fit(chain, cstate, jc.PGS(10), 1 / 240, ctraj.x, params=("restitution",), progress=False)

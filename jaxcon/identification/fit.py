@@ -34,6 +34,14 @@ TRANSFORMS = {
     "damping": "log",
     "beta": "logit",
     "gravity": "identity",
+    "radius": "log",
+    "friction": "log",
+    "restitution": "logit",
+    "restitution_threshold": "log",
+    "plane_offset": "identity",
+    "plane_normal": "identity",
+    "sphere_centre": "identity",
+    "sphere_radius": "log",
 }
 _EPS = 1e-6
 
@@ -395,6 +403,9 @@ def _parameters(params, model, solver, state, transforms, bounds):
     spec, u0 = {}, {}
     for name in params:
         value = _get(name, model, solver)
+        if value is None:
+            raise ValueError(f"fit: `{name}` is not set on this model (contact parameters exist only on models "
+                             "built with `planes`, `spheres` or `collide`)")
         kind = _kind(name, value, transforms)
         lo, hi = bounds.get(name, (0.0, 1.0))
         if kind == "log" and name != "inv_mass" and np.any(np.asarray(value) == 0):

@@ -55,9 +55,9 @@ class ContactSystem:
         t = model.topology
         a = lambda v: jnp.asarray(v, dtype)      # noqa: E731
         r = L.per_particle_in(t, a(model.radius))
+        normal = L.safe_norm(a(model.plane_normal), axis=-1)[1]     # unit, also for fitted or traced normals
         return cls(r, r.reshape(t.n), a(model.friction), a(model.restitution), a(model.restitution_threshold),
-                   a(model.plane_normal), a(model.plane_offset), a(model.sphere_centre), a(model.sphere_radius),
-                   model.contact)
+                   normal, a(model.plane_offset), a(model.sphere_centre), a(model.sphere_radius), model.contact)
 
 
 class Impulses(NamedTuple):
