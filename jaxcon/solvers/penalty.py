@@ -4,6 +4,7 @@ from __future__ import annotations
 import warnings
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
@@ -13,6 +14,7 @@ from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
+from jaxcon.solvers import contact, contact_position
 
 #: The spring tension is clipped to +- STRETCH_CLIP * stiffness * rest_length (constraints with rest length
 #: > 0). A stable run never comes near it (it is a 1000% stretch, ten times `jc.diagnose`'s violation limit);
@@ -42,20 +44,51 @@ class Penalty(Solver):
     The returned lam is the spring impulse over the step, sum of T h (N s, > 0 tension); the warm start passed
     in is not used (a spring has no iteration to warm start).
 
+    Contacts (a model with `planes`, `spheres` or `collide`) are penalty forces too, from the positions and
+    velocities at the start of the substep, except friction, which reads the velocity after gravity and the
+    springs (so that a contact can hold exactly): with C the gap, n the contact normal, vn the normal relative
+    velocity and m = 1 / (w_i + w_j) the contact's effective mass,
+
+        f_n = max(stiffness (-C) - (damping + 2 zeta sqrt(stiffness m)) vn, 0)   where C < 0, else 0
+        impulse_t = -v_t min(mu f_n h / max(|v_t|, slip_velocity), m)            (regularised Coulomb)
+
+    The normal force never pulls (clamped >= 0). zeta is the damping ratio at which such a clamped linear
+    spring-dashpot rebounds with the model's `restitution` e (Schwager and Poeschel 2007); it cannot rebound
+    with less than exp(-2) = 0.135 at critical damping, so e below that gets zeta = 1 and bounces with about
+    0.12 (a ball dropped with e = 0 rebounds to about 1.4% of its height). Gravity during the contact and the
+    explicit integration shift the bounce a little (first bounce of a ball dropped from 0.9 m, measured:
+    0.293, 0.497, 0.7998, 0.9001 for e = 0.3, 0.5, 0.8, 0.9); the solver's `damping`, if any, is added on top
+    and lowers it. `restitution_threshold` is not used. Friction is Coulomb's, regularised below
+    `slip_velocity` and capped so that one substep never reverses the slip: where mu f_n h / slip_velocity
+    exceeds m, a sticking contact holds exactly; below it, a contact that should stick creeps at up to about
+    `slip_velocity`. Pairs are all evaluated at once (no sweep). Contact impulses are reported as sum of
+    f h over the substeps (N s, contact_n >= 0, |contact_t| <= mu contact_n). The stiffness also sets the
+    penetration: a resting mass m sinks m g / stiffness into the floor, and an impact at speed u about
+    u sqrt(m / stiffness). Kinetic energy is not monotone through contacts, as some of it is held in the
+    contact springs (the 16-ball break at dt 1/60 gains up to 4.7% of its initial kinetic energy in a step
+    with stiffness 1e5 and 30 substeps, its balls overlapping by up to 5.5% of a diameter; 0.45% and 0.2%
+    with 1e6 and 100 substeps). `stability_limit` counts the contacts too.
+
     Args:
-      stiffness: spring constant k, N/m, a differentiable leaf, > 0.
-      damping: damping coefficient c along the constraint, N s/m, a differentiable leaf, >= 0.
+      stiffness: spring constant k, N/m, a differentiable leaf, > 0 (rods, ropes and contacts).
+      damping: damping coefficient c along the constraint, N s/m, a differentiable leaf, >= 0 (rods, ropes,
+        and added to the contacts' normal damping).
       substeps: substeps per step, static, >= 1.
+      slip_velocity: regularisation speed of contact friction, m/s, a differentiable leaf, > 0.
     """
 
     stiffness: Any = 1e5
     damping: Any = 0.0
     substeps: int = static_field(default=1)
+    slip_velocity: Any = 1e-3
+
+    supports_contacts = True
 
     def __post_init__(self):
         check_int("Penalty", "substeps", self.substeps, 1)
         check_scalar("Penalty", "stiffness", self.stiffness, 0.0, positive=True)
         check_scalar("Penalty", "damping", self.damping, 0.0)
+        check_scalar("Penalty", "slip_velocity", self.slip_velocity, 0.0, positive=True)
 
     def stability_limit(self, model) -> float:
         """A substep h below which the undamped springs of `model` are stable: 2 / omega_bound (s), with
@@ -66,9 +99,37 @@ class Penalty(Solver):
         t = model.topology
         w = np.asarray(model.inv_mass, np.float64)
         deg = np.bincount(np.concatenate([t.i, t.j]), minlength=t.n)
+        if model.contact is not None:
+            return self._contact_stability_limit(model, w, deg)
         bound = float(np.max(w[t.i] * deg[t.i] + w[t.j] * deg[t.j]))
         omega = np.sqrt(float(self.stiffness) * bound)
         return float(2 / omega) if omega > 0 else float("inf")
+
+    def _contact_stability_limit(self, model, w, deg):
+        """`stability_limit` of a model with contacts: each particle's degree also counts the contacts it can
+        have at once (its candidate pairs, at most 6 in 2-D and 12 in 3-D, plus one per obstacle up to dim),
+        obstacle contacts are springs to a fixed body, and the limit is scaled by sqrt(1 + zeta^2) - zeta for
+        the contacts' damping ratio zeta (from `restitution` and `damping`), the stability limit of symplectic
+        Euler for a damped oscillator."""
+        t, ct = model.topology, model.contact
+        pairs = np.asarray(ct.pairs.array).reshape(-1, 2)
+        kiss = 6 if t.dim == 2 else 12
+        touch = np.minimum(np.bincount(pairs.reshape(-1), minlength=t.n), kiss) + min(ct.n_obstacles, t.dim)
+        deg = deg + touch
+        i = np.concatenate([t.i, pairs[:, 0], np.arange(t.n)])
+        j = np.concatenate([t.j, pairs[:, 1], np.arange(t.n)])
+        wj = np.concatenate([w[t.j], w[pairs[:, 1]], np.zeros(t.n if ct.n_obstacles else 0)])
+        i, j = i[: len(wj)], j[: len(wj)]
+        bound = float(np.max(w[i] * deg[i] + wj * deg[j], initial=0.0))
+        k = float(self.stiffness)
+        omega = np.sqrt(k * bound)
+        if omega <= 0:
+            return float("inf")
+        w_pair = np.concatenate([w[pairs[:, 0]] + w[pairs[:, 1]], w if ct.n_obstacles else np.zeros(0)])
+        e = float(np.asarray(model.restitution))
+        zeta = _damping_ratio_now(e)
+        zeta += float(self.damping) * float(np.sqrt(np.max(w_pair, initial=0.0) / k)) / 2
+        return float(2 / omega * (np.sqrt(1 + zeta ** 2) - zeta))
 
     def _check_stability(self, owner, model, dt) -> None:
         """Warn (before tracing, where the values are known) when a substep is above `stability_limit`: the
@@ -76,6 +137,8 @@ class Penalty(Solver):
         is something one may want to see."""
         vals = [concrete(a) for a in (self.stiffness, model.inv_mass, dt)]
         if any(a is None for a in vals):
+            return
+        if model.contact is not None and any(concrete(a) is None for a in (model.restitution, self.damping)):
             return
         h = float(vals[2]) / self.substeps
         limit = self.stability_limit(model)
@@ -125,4 +188,105 @@ class Penalty(Solver):
                 v = v + L.scatter_pair(topo, blk, wi * q, -wj * q)
             return x + h * v, v, tuple(imp)
 
-        return substepped(substep, self.substeps, x, v, lam, dt)
+        if sys.contact is None:
+            return substepped(substep, self.substeps, x, v, lam, dt)
+
+        def with_contacts(x, v, ws, h):
+            if topo.blocks:
+                x1, v1, imp_b = substep(x, v, ws[0], h)
+            else:                    # contacts only: no springs
+                v1 = sys.apply_gravity(v, h)
+                x1, imp_b = x + h * v1, ()
+            dv, imp_c = _contact_impulses(sys.topology, sys.contact, sys.w, x, v, v1, h, k, c,
+                                          jnp.asarray(self.slip_velocity, dtype))
+            return x1 + h * dv, v1 + dv, (imp_b, imp_c)
+
+        return substepped(with_contacts, self.substeps, x, v, lam, dt)
+
+
+#: The least restitution a contact with no tensile force can have at critical damping, exp(-2) (below it Penalty
+#: uses critical damping and bounces with about this restitution).
+MIN_RESTITUTION = float(np.exp(-2.0))
+
+
+def _log_restitution(zeta, xp=jnp):
+    """ln e of a linear spring-dashpot with damping ratio zeta in [0, 1) whose force is clamped >= 0 (the
+    contact ends when the force vanishes, before the overlap does): Schwager and Poeschel 2007, Granular
+    Matter 9, 465, written with one atan2 for both of their ranges of zeta. `xp`: jax.numpy or numpy."""
+    s = xp.sqrt(1 - zeta * zeta)
+    return -(zeta / s) * (xp.pi - xp.arctan2(2 * zeta * s, 1 - 2 * zeta * zeta))
+
+
+def _damping_ratio_now(e: float) -> float:
+    """`_restitution_damping_ratio` of a concrete e, in NumPy (for `stability_limit`)."""
+    if e <= MIN_RESTITUTION:
+        return 1.0
+    lo, hi = 0.0, 1 - 1e-6
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if _log_restitution(mid, np) > np.log(e) else (lo, mid)
+    return (lo + hi) / 2
+
+
+def _restitution_damping_ratio(e):
+    """The damping ratio zeta at which a clamped linear spring-dashpot rebounds with restitution e (inverting
+    `_log_restitution` by bisection, then one Newton step that carries the derivative d zeta / d e); 1
+    (critical damping) for e <= MIN_RESTITUTION."""
+    top = 1 - 1e-6
+    target = jnp.log(jnp.maximum(e, MIN_RESTITUTION))
+
+    def bisect(_, lo_hi):
+        lo, hi = lo_hi
+        mid = (lo + hi) / 2
+        above = _log_restitution(mid) > target        # still too elastic: more damping
+        return jnp.where(above, mid, lo), jnp.where(above, hi, mid)
+
+    lo, hi = lax.fori_loop(0, 60, bisect, (jnp.zeros_like(target), jnp.full_like(target, top)))
+    z0 = lax.stop_gradient((lo + hi) / 2)
+    value, slope = jax.value_and_grad(_log_restitution)(z0)
+    zeta = z0 - (value - target) / slope
+    return jnp.where(e > MIN_RESTITUTION, zeta, 1.0)
+
+
+def _penalty_row(vrel0, vrel, n, C, m, k, c, two_zeta, mu, slip, h):
+    """(normal impulse, friction impulse [dim, ...] on the second body) of penalty contacts over a substep h;
+    m: effective mass (0: no contact). The damping reads the relative velocity at the start of the substep,
+    `vrel0`, friction the one after gravity and the springs, `vrel`."""
+    vn = jnp.sum(vrel0 * n, 0)
+    live = m > 0
+    root = jnp.where(live, jnp.sqrt(jnp.where(live, k * m, 1)), 0)
+    f_n = jnp.where((C < 0) & live, jnp.maximum(-k * C - (c + two_zeta * root) * vn, 0), 0)
+    p_n = f_n * h
+    vt = vrel - n * jnp.sum(vrel * n, 0)
+    speed, _ = L.safe_length(vt)
+    return p_n, -vt * jnp.minimum(mu * p_n / jnp.maximum(speed, slip), m)
+
+
+def _contact_impulses(topo, cs, w, x, v0, v, h, k, c, slip):
+    """Penalty contact impulses of one substep (Penalty's docstring): (velocity change [dim, *view], the
+    substep's contact `Impulses`). x, v0: positions and velocities at the start of the substep, v: velocities
+    after gravity and the springs."""
+    ct, mu, dim = cs.ct, cs.friction, x.shape[0]
+    two_zeta = 2 * _restitution_damping_ratio(cs.restitution)
+    on = ot = pn = pt = None
+    dv = jnp.zeros_like(v)
+    if ct.n_obstacles:
+        m = L.safe_reciprocal(w[0])
+        rows = []
+        for q in range(ct.n_obstacles):
+            n, C = contact_position.obstacle_gap(cs, q, x)
+            p_n, p_t = _penalty_row(v0, v, n, C, m, k, c, two_zeta, mu, slip, h)
+            dv = dv + w * (n * p_n + p_t)
+            rows.append((p_n, p_t))
+        on, ot = (jnp.stack(a) for a in zip(*rows))
+    if ct.n_pairs:
+        ia, ja = ct.i.array, ct.j.array
+        xf, vf, v0f, wf = x.reshape(dim, -1), v.reshape(dim, -1), v0.reshape(dim, -1), w.reshape(-1)
+        dist, n = L.safe_norm(xf[:, ja] - xf[:, ia], axis=0)
+        C = dist - cs.radius_flat[ia] - cs.radius_flat[ja]
+        m = L.safe_reciprocal(wf[ia] + wf[ja]) * jnp.asarray(ct.valid.array, x.dtype)
+        pn, pt = _penalty_row(v0f[:, ja] - v0f[:, ia], vf[:, ja] - vf[:, ia], n, C, m, k, c, two_zeta, mu, slip, h)
+        dv = dv + contact._pair_total(ct, w, n * pn + pt, sign_i=-1.0).reshape(v.shape)
+    zero = contact.zero_impulses(topo, ct, x.dtype)
+    return dv, contact.Impulses(zero.obs_n if on is None else on, zero.obs_t if ot is None else ot,
+                                zero.pair_n if pn is None else pn, zero.pair_t if pt is None else pt)

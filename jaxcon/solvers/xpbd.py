@@ -10,6 +10,7 @@ from jaxcon.core import layout as L
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
+from jaxcon.solvers import contact, contact_position
 from jaxcon.solvers.common import clamp_ropes
 
 
@@ -35,6 +36,22 @@ class XPBD(Solver):
       iterations: Gauss-Seidel sweeps per substep, static, >= 1 (with many substeps, 1 is usual).
       compliance: inverse stiffness, m/N, a differentiable leaf, >= 0; 0 is a rigid rod.
       substeps: substeps per step, static, >= 1.
+
+    Contacts (a model with `planes`, `spheres` or `collide`; jaxcon.solvers.contact_position, Mueller et al.
+    2020): in each iteration, after the colours, every contact with gap C(p) < 0 is projected out at position
+    level (rigid, lam_n accumulated >= 0; obstacles for all particles at once, pairs round by round), with
+    *static* friction cancelling the substep's relative tangential displacement while |lam_t| <= mu lam_n.
+    After v = (p - x) / h, one velocity pass over the contacts that pushed (lam_n > 0) sets the normal
+    relative velocity to -e times its value at the start of the substep after gravity (e = 0 at or below
+    `restitution_threshold`) and applies *dynamic* friction, the tangential velocity removed by an impulse
+    inside the Coulomb disc of the substep's normal impulse. The model's single `friction` is used for both
+    static and dynamic friction. The reported contact impulses are lam / h plus the velocity pass's impulses,
+    summed over the substeps (N s, contact_n >= 0, |contact_t| <= mu contact_n). There is no time-of-impact
+    correction (unlike PGS): an impact is resolved at the end of the substep it falls in, so positions after
+    a bounce are off by up to a substep's travel and d(final state)/d(initial state) across a bounce is the
+    slope of that piecewise map, with jumps where the impact moves to another substep. Restitution acts on
+    each contact's own approach speed, so an impulse carried through touching bodies within one substep is
+    inelastic: the 16-ball break (`XPBD(substeps=20)`, dt 1/60) keeps 45% of its kinetic energy, PGS 89%.
     """
 
     iterations: int = static_field(default=1)
@@ -46,11 +63,12 @@ class XPBD(Solver):
         check_int("XPBD", "substeps", self.substeps, 1)
         check_scalar("XPBD", "compliance", self.compliance, 0.0)
 
-    def _step(self, sys, x, v, lam, dt):
+    supports_contacts = True
+
+    @staticmethod
+    def _colour_sweep(sys, alpha):
+        """One Gauss-Seidel pass over the rod and rope colours: (_, (p, mu)) -> (p, mu)."""
         topo = sys.topology
-        dtype = x.dtype
-        h = dt / self.substeps
-        alpha = jnp.asarray(self.compliance, dtype) / (h * h)
         w_pairs = []
         for blk in topo.blocks:
             wi, wj = L.gather_pair(topo, blk, sys.w)
@@ -76,6 +94,16 @@ class XPBD(Solver):
                 mu[c] = new
                 p = p + L.scatter_pair(topo, blk, wi * q, -wj * q)
             return p, tuple(mu)
+        return sweep
+
+    def _step(self, sys, x, v, lam, dt):
+        if sys.contact is not None:
+            return self._step_contacts(sys, x, v, dt)
+        topo = sys.topology
+        dtype = x.dtype
+        h = dt / self.substeps
+        alpha = jnp.asarray(self.compliance, dtype) / (h * h)
+        sweep = self._colour_sweep(sys, alpha)
 
         def predict(x, v):
             return x + h * sys.apply_gravity(v, h)
@@ -93,3 +121,32 @@ class XPBD(Solver):
         zero = tuple(jnp.zeros(b.shape, dtype) for b in topo.blocks)
         x, v, _, total = lax.fori_loop(0, self.substeps, substep, (x, v, predict(x, v), zero))
         return x, v, total
+
+    def _step_contacts(self, sys, x, v, dt):
+        """The step of a model with contacts (jaxcon.solvers.contact_position): each iteration projects the
+        colours, then the contacts; after v = (p - x) / h, one velocity pass of restitution and dynamic
+        friction. Returns lam as (block impulses, contact `Impulses`), both summed over the substeps."""
+        topo, cs = sys.topology, sys.contact
+        dtype = x.dtype
+        h = dt / self.substeps
+        sweep_colours = self._colour_sweep(sys, jnp.asarray(self.compliance, dtype) / (h * h))
+        zero_b = tuple(jnp.zeros(b.shape, dtype) for b in topo.blocks)
+        zero_c = contact.zero_impulses(topo, cs.ct, dtype)
+
+        def substep(_, carry):
+            x, v, total_b, total_c = carry
+            v_before = sys.apply_gravity(v, h)
+
+            def sweep(i, c):
+                p, mu, imp = c
+                p, mu = sweep_colours(i, (p, mu))
+                p, imp = contact_position.project(cs, sys.w, x, p, imp)
+                return p, mu, imp
+
+            p, mu, imp = lax.fori_loop(0, self.iterations, sweep, (x + h * v_before, zero_b, zero_c))
+            v, imp = contact_position.velocity_pass(cs, sys.w, p, v_before, (p - x) / h, imp, h)
+            return (p, v, tuple(t + m / h for t, m in zip(total_b, mu)),
+                    contact.Impulses(*(t + a for t, a in zip(total_c, imp))))
+
+        x, v, total_b, total_c = lax.fori_loop(0, self.substeps, substep, (x, v, zero_b, zero_c))
+        return x, v, (total_b, total_c)
