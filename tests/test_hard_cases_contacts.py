@@ -14,6 +14,7 @@ one that supports contacts and has no expectation here fails with its measured v
 import functools
 import os
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -56,6 +57,15 @@ EXPECT = {
     ("PGS-split", "heavy_on_light_100"): (S, 1.5, 0.0, 1.0),
     ("PGS-split", "break_16_dt_1_60"): (S, 0.09, 0.0, 1e-9, 1e-12, 1e-12),
     ("PGS-split", "drape_from_1m"): (S, 0.01, 0.95, 1e-3),
+    # XPBD(10 substeps): position projection holds the 100:1 column to 5% of a radius and the break without any
+    # overlap; Penalty(1e5 N/m, 20 substeps) sinks 18% in the column, its break gains 0.7% kinetic energy in a
+    # step (stored in the contact springs), and the light cloth particles are far above its stability limit.
+    ("XPBD", "heavy_on_light_100"): (S, 0.1, 0.0, 1e-3),
+    ("XPBD", "break_16_dt_1_60"): (S, 0.01, 0.0, 1e-9, 1e-12, 1e-12),
+    ("XPBD", "drape_from_1m"): (S, 0.01, 0.2, 1e-3),
+    ("Penalty", "heavy_on_light_100"): (S, 0.4, 0.0, 1e-3),
+    ("Penalty", "break_16_dt_1_60"): (S, 0.04, 0.0, 1e-9, 1e-12, 0.015),
+    ("Penalty", "drape_from_1m"): (D,),
 }
 
 
@@ -65,7 +75,9 @@ def run(solver_name, case_name):
     solver = dict(SOLVERS)[solver_name]
     make, dt, steps, size = CASES[case_name]
     model, state = make()
-    _, traj = jc.rollout(model, state, solver, dt, steps)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)     # Penalty's stability warning: the table records it
+        _, traj = jc.rollout(model, state, solver, dt, steps)
     d = jc.diagnose(model, traj, state)
     out = {
         "survived": not bool(d.diverged),
