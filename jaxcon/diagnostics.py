@@ -113,9 +113,10 @@ def penetration(model: Model, x):
 VIOLATION_LIMIT = 1.0
 
 
-#: ... or when a contact overlaps by more than this fraction of its size (`contact_sizes`: a particle's centre
-#: behind a plane or inside a sphere, or two centres that met: the contact has been passed through).
-PENETRATION_LIMIT = 1.0
+#: ... or when a contact overlaps by more than this fraction of its size (`contact_sizes`): a particle half
+#: behind a plane or inside a sphere, or two balls whose centres are closer than the mean of their radii. A
+#: pair that has passed through itself never overlaps by more than its size, so the limit is below it.
+PENETRATION_LIMIT = 0.5
 
 
 #: ... or when its total energy rose above the initial energy by more than this many energy scales, the scale
@@ -153,7 +154,7 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
     the first recorded step is the reference. A step is *bad* when any of its x, v, lam is non-finite, when
     its largest relative violation exceeds VIOLATION_LIMIT (1.0), when its energy exceeds E_0 by more than
     ENERGY_LIMIT (10) energy scales, or when a contact of nonzero size overlaps by more than PENETRATION_LIMIT
-    (1.0) of its size. NaNs compare as bad. Callable under jax.jit.
+    (0.5) of its size. NaNs compare as bad. Callable under jax.jit.
     """
     if not isinstance(model, Model):
         raise TypeError(f"diagnose: `model` must be a jaxcon Model, got {type(model).__name__}")

@@ -158,6 +158,7 @@ def test_gradients_finite_through_onset_separation_and_sticking():
 
 
 def test_billiards_break_conserves_momentum_and_never_gains_energy():
+    """The straight break. Off-axis breaks are not yet this good: see test_off_axis_break_never_gains_energy."""
     model, state = jc.scenes.billiards()
     dt, R = 1 / 60, jc.scenes.BALL_RADIUS
     _, traj = jc.rollout(model, state, jc.PGS(20), dt, 120)
@@ -352,3 +353,14 @@ def test_fit_recovers_restitution_from_a_bouncing_ball():
     _, ctraj = jc.rollout(chain, cstate, jc.PGS(10), 1 / 240, 20)
     with pytest.raises(ValueError, match="restitution.*not set"):
         jc.fit(chain, cstate, jc.PGS(10), 1 / 240, ctraj.x, params=("restitution",), progress=False)
+
+
+@pytest.mark.xfail(strict=True, reason="known, issue 14 left open: restitution targets on several touching contacts "
+                   "solved at once can gain energy (Newton's law in a cluster); the off-axis break at -0.02 rad "
+                   "gains 3.2% of its kinetic energy in one step with PGS(20) and overlaps 12% of a diameter")
+def test_off_axis_break_never_gains_energy():
+    model, state = jc.scenes.billiards(angle=-0.02)
+    _, traj = jc.rollout(model, state, jc.PGS(20), 1 / 60, 120)
+    v = np.concatenate([np.asarray(state.v)[None], np.asarray(traj.v)])
+    ke = 0.5 * jc.scenes.BALL_MASS * (v ** 2).sum((1, 2))
+    assert np.diff(ke).max() <= 1e-12 * ke[0]

@@ -66,6 +66,16 @@ EXPECT = {
     ("Penalty", "heavy_on_light_100"): (S, 0.4, 0.0, 1e-3),
     ("Penalty", "break_16_dt_1_60"): (S, 0.04, 0.0, 1e-9, 1e-12, 0.015),
     ("Penalty", "drape_from_1m"): (D,),
+    # Jacobi(20): the 100:1 column passes a ball through another (flagged); in the break 20 Jacobi iterations
+    # leave 22% overlap and the simultaneous restitution targets gain 0.8% kinetic energy in one step; the
+    # cloth stretches past 100%. SoftStep(16 substeps): soft contacts sag (56% of a radius under the 100 kg
+    # ball) but hold the break to 0.9% and the drape to 1.8% of the sphere's radius.
+    ("Jacobi", "heavy_on_light_100"): (D,),
+    ("Jacobi", "break_16_dt_1_60"): (S, 0.4, 0.0, 1e-9, 1e-12, 0.02),
+    ("Jacobi", "drape_from_1m"): (D,),
+    ("SoftStep", "heavy_on_light_100"): (S, 1.0, 0.0, 1e-3),
+    ("SoftStep", "break_16_dt_1_60"): (S, 0.02, 0.0, 1e-9, 1e-12, 1e-12),
+    ("SoftStep", "drape_from_1m"): (S, 0.04, 0.1, 1e-3),
 }
 
 
