@@ -9,6 +9,7 @@ from jax import lax
 from jaxcon.core import layout as L
 from jaxcon.core.system import System
 from jaxcon.core.topology import Topology
+from jaxcon.solvers import contact
 
 Array = Any
 
@@ -129,3 +130,36 @@ def pseudo_velocities(sys: System, fr: tuple, correction: tuple, iterations: int
         return vp + dv, tuple(lam)
 
     return lax.fori_loop(0, iterations, sweep, (vp0, lam0))[0]
+
+
+# ---- the start and end of a velocity-level (sub)step with contacts (PGS, Jacobi) ------------------------------
+def contact_begin(sys, x, v, lam_ws, beta, h, split: bool, warm: bool, factor=1.0, gradient: bool = True):
+    """Gravity, the rods' frames and biases (no Baumgarte bias when `split`), the contact rows, and the warm
+    start of rods and contacts (scaled by `factor`; no gradient through it unless `gradient`).
+    Returns (v_free, v, fr, bias, obs, pairs, lam, imp): v_free is the velocity after gravity, before any
+    impulse (what the time-of-impact correction compares with)."""
+    topo, cs = sys.topology, sys.contact
+    lam_ws, imp_ws = lam_ws
+    v0, v = v, sys.apply_gravity(v, h)
+    v_free = v
+    fr = frames(sys, x)
+    bias = velocity_bias(topo, fr, jnp.zeros((), x.dtype) if split else beta, h)
+    obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h)
+    if not warm:
+        return (v_free, v, fr, bias, obs, pairs, tuple(jnp.zeros_like(f.C) for f in fr),
+                contact.zero_impulses(topo, cs.ct, x.dtype))
+    if not gradient:
+        imp_ws = lax.stop_gradient(imp_ws)
+    v, lam = warm_start(sys, v, fr, lam_ws, factor, gradient)
+    v, imp = contact.warm_start(cs, sys.w, v, obs, pairs, imp_ws, factor)
+    return v_free, v, fr, bias, obs, pairs, lam, imp
+
+
+def contact_end(sys, x, v, v_free, obs, pairs, imp, h, v_pseudo=None):
+    """New positions: x + h (v + v_pseudo) with the time-of-impact correction (a particle whose velocity
+    changed at tau within the step moved at its old velocity until then: x' = x + tau v_free + (h - tau) v'),
+    then the position safety pass. `v_pseudo`: split impulses' pseudo-velocity (moves, then is discarded)."""
+    cs = sys.contact
+    dx = -contact.impact_times(cs, obs, pairs, imp, x.shape) * (v - v_free)
+    move = v if v_pseudo is None else v + v_pseudo
+    return contact.project_overlaps(cs, sys.w, x + h * move + dx)

@@ -254,16 +254,22 @@ def _pair_apply(ct, v, r, wi, wj, P):
     return v + jnp.take(jnp.concatenate([-wi * P, wj * P, zero], -1), src, axis=-1)
 
 
-def sweep(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, imp: Impulses):
+def sweep(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, imp: Impulses, row=None, extra=(None, None)):
     """One Gauss-Seidel pass over every contact: obstacles one after another (each over all particles at
-    once), then the pair rounds in a loop. Returns (v, imp)."""
+    once), then the pair rounds in a loop. Returns (v, imp).
+
+    `row(vrel, f, mu, lam_n, lam_t, extra) -> (P, lam_n, lam_t)` solves one row (default `_solve_row`);
+    `extra` = (per-obstacle, per-pair) tuples of arrays handed to it, row by row (SoftStep's soft
+    coefficients), or None."""
+    row = row or (lambda vrel, f, mu, ln, lt, _: _solve_row(vrel, f, mu, ln, lt))
+    pick = lambda group, k: None if group is None else tuple(a[k] for a in group)     # noqa: E731
     ct, mu = cs.ct, cs.friction
     on, ot = imp.obs_n, imp.obs_t
     if obs is not None:
         on, ot = list(on), list(ot)
         for q in range(ct.n_obstacles):
             f = Rows(*(a[q] for a in obs))
-            P, on[q], ot[q] = _solve_row(v, f, mu, on[q], ot[q])
+            P, on[q], ot[q] = row(v, f, mu, on[q], ot[q], pick(extra[0], q))
             v = v + w * P
         on, ot = jnp.stack(on), jnp.stack(ot)
     pn, pt = imp.pair_n, imp.pair_t
@@ -276,7 +282,7 @@ def sweep(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, imp: Impulses):
             vf, pn, pt = carry
             i, j = ia[r], ja[r]
             f = Rows(pairs.n[:, r], pairs.target[r], pairs.k[r], pairs.winv[r], pairs.toi[r], pairs.gap[r])
-            P, ln, lt = _solve_row(vf[:, j] - vf[:, i], f, mu, pn[r], pt[:, r])
+            P, ln, lt = row(vf[:, j] - vf[:, i], f, mu, pn[r], pt[:, r], pick(extra[1], r))
             vf = _pair_apply(ct, vf, r, wf[i], wf[j], P)
             return vf, pn.at[r].set(ln), pt.at[:, r].set(lt)
 
@@ -403,4 +409,3 @@ def zero_impulses(topo: Topology, ct: ContactTopology, dtype) -> Impulses:
     q, dim = ct.n_obstacles, topo.dim
     return Impulses(jnp.zeros((q,) + topo.view, dtype), jnp.zeros((q, dim) + topo.view, dtype),
                     jnp.zeros((ct.rounds, ct.width), dtype), jnp.zeros((dim, ct.rounds, ct.width), dtype))
-

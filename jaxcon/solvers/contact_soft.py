@@ -22,10 +22,9 @@ Friction is rigid in both stages (as Box2D's), clamped to mu lam_n.
 from __future__ import annotations
 
 import jax.numpy as jnp
-from jax import lax
 
 from jaxcon.core import layout as L
-from jaxcon.solvers.contact import Impulses, Rows, _pair_apply
+from jaxcon.solvers.contact import Impulses, Rows, sweep
 
 
 def solve_rows(rows: Rows, soft, push_velocity):
@@ -59,31 +58,9 @@ def _soft_row(vrel, f: Rows, soft, mu, ln, lt):
 
 
 def soft_sweep(cs, w, v, obs: Rows, pairs: Rows, imp: Impulses, obs_soft, pair_soft):
-    """One Gauss-Seidel pass over every contact with soft rows (as `contact.sweep`: obstacles one after another,
-    each over all particles, then the pair rounds). Returns (v, imp)."""
-    ct, mu = cs.ct, cs.friction
-    on, ot = imp.obs_n, imp.obs_t
-    if obs is not None:
-        on, ot = list(on), list(ot)
-        for q in range(ct.n_obstacles):
-            f = Rows(*(a[q] for a in obs))
-            P, on[q], ot[q] = _soft_row(v, f, tuple(s[q] for s in obs_soft), mu, on[q], ot[q])
-            v = v + w * P
-        on, ot = jnp.stack(on), jnp.stack(ot)
-    pn, pt = imp.pair_n, imp.pair_t
-    if pairs is not None:
-        dim, shape = v.shape[0], v.shape
-        ia, ja = jnp.asarray(ct.i.array), jnp.asarray(ct.j.array)
-        wf = w.reshape(-1)
+    """One Gauss-Seidel pass over every contact with soft rows: `contact.sweep` with `_soft_row` and the
+    per-row soft coefficients. Returns (v, imp)."""
+    def row(vrel, f, mu, ln, lt, soft):
+        return _soft_row(vrel, f, soft, mu, ln, lt)
 
-        def one_round(r, carry):
-            vf, pn, pt = carry
-            i, j = ia[r], ja[r]
-            f = Rows(*(a[:, r] if a.ndim == 3 else a[r] for a in pairs))
-            P, ln, lt = _soft_row(vf[:, j] - vf[:, i], f, tuple(s[r] for s in pair_soft), mu, pn[r], pt[:, r])
-            vf = _pair_apply(ct, vf, r, wf[i], wf[j], P)
-            return vf, pn.at[r].set(ln), pt.at[:, r].set(lt)
-
-        vf, pn, pt = lax.fori_loop(0, ct.rounds, one_round, (v.reshape(dim, -1), pn, pt))
-        v = vf.reshape(shape)
-    return v, Impulses(on, ot, pn, pt)
+    return sweep(cs, w, v, obs, pairs, imp, row=row, extra=(obs_soft, pair_soft))

@@ -13,8 +13,10 @@ from jaxcon.core.checks import check_bool, check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
-from jaxcon.solvers import contact, contact_jacobi
+from jaxcon.solvers import contact_jacobi
 from jaxcon.solvers.common import (
+    contact_begin,
+    contact_end,
     check_stabilization,
     clamp_ropes,
     frames,
@@ -126,29 +128,17 @@ class Jacobi(Solver):
         """One (sub)step of a model with contacts (jaxcon.solvers.contact_jacobi): PGS's contact rows, warm start,
         time-of-impact correction and position safety pass, with rods and contacts solved in the same Jacobi
         iterations. `relaxation=None` relaxes by mass splitting (per-particle counts of the rows that push)."""
-        topo, cs = sys.topology, sys.contact
-        lam_ws, imp_ws = lam_ws
+        topo = sys.topology
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
         relax = None if self.relaxation is None else jnp.asarray(self.relaxation, dtype)
-        v0, v = v, sys.apply_gravity(v, h)
-        v_free = v
-        fr = frames(sys, x)
         split = self.stabilization == "split"
-        bias = velocity_bias(topo, fr, jnp.zeros((), dtype) if split else beta, h)
-        obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h)
-        if self.warm_start:
-            v, lam = warm_start(sys, v, fr, lam_ws)
-            v, imp = contact.warm_start(cs, sys.w, v, obs, pairs, imp_ws)
-        else:
-            lam = tuple(jnp.zeros_like(f.C) for f in fr)
-            imp = contact.zero_impulses(topo, cs.ct, dtype)
+        v_free, v, fr, bias, obs, pairs, lam, imp = contact_begin(sys, x, v, lam_ws, beta, h, split,
+                                                                  self.warm_start)
         body = contact_jacobi.iteration(sys, fr, bias, obs, pairs, relax)
         v, lam, imp = lax.fori_loop(0, self.iterations, body, (v, lam, imp))
-        # time-of-impact correction, as PGS: x' = x + tau v_free + (h - tau) v'
-        dx = -contact.impact_times(cs, obs, pairs, imp, x.shape) * (v - v_free)
-        move = v
+        v_p = None
         if split and fr:
             rod_relax = jnp.asarray(1.0 / max_degree(topo), dtype) if relax is None else relax
-            move = v + pseudo_velocities(sys, fr, position_correction(topo, fr, beta, h), self.iterations, rod_relax)
-        return contact.project_overlaps(cs, sys.w, x + h * move + dx), v, (lam, imp)
+            v_p = pseudo_velocities(sys, fr, position_correction(topo, fr, beta, h), self.iterations, rod_relax)
+        return contact_end(sys, x, v, v_free, obs, pairs, imp, h, v_p), v, (lam, imp)

@@ -14,6 +14,8 @@ from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact
 from jaxcon.solvers.common import (
+    contact_begin,
+    contact_end,
     apply_impulses,
     check_stabilization,
     clamp_ropes,
@@ -130,25 +132,13 @@ class PGS(Solver):
         if self.implicit:
             raise ValueError("PGS(implicit=True) does not support contacts (an inequality); use implicit=False")
         topo, cs = sys.topology, sys.contact
-        lam_ws, imp_ws = lam_ws
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
-        v0, v = v, sys.apply_gravity(v, h)
-        v_free = v
-        fr = frames(sys, x)
+        factor = self.warm_start_factor
+        factor = factor if isinstance(factor, (int, float)) else jnp.asarray(factor, dtype)
         split = self.stabilization == "split"
-        bias = velocity_bias(topo, fr, jnp.zeros((), dtype) if split else beta, h)
-        obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h)
-        if self.warm_start:
-            factor = self.warm_start_factor
-            factor = factor if isinstance(factor, (int, float)) else jnp.asarray(factor, dtype)
-            if not self.warm_start_gradient:
-                imp_ws = lax.stop_gradient(imp_ws)
-            v, lam = warm_start(sys, v, fr, lam_ws, factor, self.warm_start_gradient)
-            v, imp = contact.warm_start(cs, sys.w, v, obs, pairs, imp_ws, factor)
-        else:
-            lam = tuple(jnp.zeros_like(f.C) for f in fr)
-            imp = contact.zero_impulses(topo, cs.ct, dtype)
+        v_free, v, fr, bias, obs, pairs, lam, imp = contact_begin(
+            sys, x, v, lam_ws, beta, h, split, self.warm_start, factor, self.warm_start_gradient)
         block_sweep = self._block_sweep(topo, fr, bias)
 
         def sweep(_, carry):
@@ -158,13 +148,9 @@ class PGS(Solver):
             return v, lam, imp
 
         v, lam, imp = lax.fori_loop(0, self.iterations, sweep, (v, lam, imp))
-        # Time-of-impact correction: a particle whose velocity changed at tau within the step moved at its old
-        # velocity until then (x' = x + tau v1 + (h - tau) v' instead of x + h v').
-        dx = -contact.impact_times(cs, obs, pairs, imp, x.shape) * (v - v_free)
-        move = v
-        if split and fr:       # the pseudo-velocity moves this step's positions and is then discarded
-            move = v + pseudo_velocities(sys, fr, position_correction(topo, fr, beta, h), self.iterations)
-        return contact.project_overlaps(cs, sys.w, x + h * move + dx), v, (lam, imp)
+        v_p = (pseudo_velocities(sys, fr, position_correction(topo, fr, beta, h), self.iterations)
+               if split and fr else None)
+        return contact_end(sys, x, v, v_free, obs, pairs, imp, h, v_p), v, (lam, imp)
 
     @staticmethod
     def _block_sweep(topo, fr, bias):

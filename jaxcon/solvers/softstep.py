@@ -76,9 +76,9 @@ class SoftStep(Solver):
     most `contact_push_velocity`; obstacles, Box2D's static bodies, at twice the hertz) and rigid, with its
     restitution, in the relax sweeps; positions get PGS's time-of-impact correction. A resting contact sinks by
     its spring's static deflection, (load / effective mass) / (2 pi hertz)^2 (a particle resting on the floor:
-    g / (2 pi 60)^2 = 0.07 mm at the defaults and dt 1/60). A fast impact through touching contacts (a billiards rack) is only carried as far as one
-    sweep per substep reaches: the 10 m/s break needs 16 substeps and contact_hertz = 0.25 / h to overlap
-    below 1% of a diameter.
+    g / (2 pi 60)^2 = 0.07 mm at the defaults and dt 1/60). A fast impact through touching contacts (a
+    billiards rack) is only carried as far as one sweep per substep reaches: the 10 m/s break needs 16
+    substeps and contact_hertz = 0.25 / h to overlap below 1% of a diameter.
 
     Args:
       substeps: substeps per step, static, >= 1.
