@@ -268,9 +268,10 @@ def _cloth_scene(small, repeats, log):
 def _contact_grid(small):
     """Solver configurations for the contact scenes: every solver whose `supports_contacts` is True."""
     dt = 1 / 60
-    g = [(PGS(10), dt), (PGS(20), dt), (PGS(10, substeps=2), dt), (PGS(10), dt / 2)]
-    if not small:
-        g += [(PGS(40), dt), (PGS(10, substeps=4), dt)]
+    if small:      # the test suite's run: one point per scene (each point is a compile of a contact rollout)
+        return [(PGS(10), dt)]
+    g = [(PGS(10), dt), (PGS(20), dt), (PGS(10, substeps=2), dt), (PGS(10), dt / 2), (PGS(40), dt),
+         (PGS(10, substeps=4), dt)]
     extra = [(XPBD(substeps=10), dt), (XPBD(substeps=20), dt), (Jacobi(iterations=20), dt),
              (Jacobi(iterations=40), dt), (SoftStep(substeps=4), dt), (SoftStep(substeps=8), dt)]
     return g + [(s, h) for s, h in extra if s.supports_contacts]
