@@ -237,6 +237,12 @@ def _solve_row(vrel, f: Rows, mu, ln, lt):
     (impulse change P [dim, ...] on the second body, new lam_n, new lam_t)."""
     vn = jnp.sum(vrel * f.n, 0)
     new_n = jnp.maximum(ln + (f.target - vn) * f.k, 0)
+    return finish_row(vrel, f, mu, ln, new_n, lt)
+
+
+def finish_row(vrel, f: Rows, mu, ln, new_n, lt):
+    """The rest of a contact row once its new normal impulse `new_n` is known: friction on the relative
+    velocity after that impulse, clamped to the disc mu new_n. Returns (P, new_n, new_t) as `_solve_row`."""
     dn = new_n - ln
     vrel = vrel + (f.winv * dn) * f.n
     vt = vrel - f.n * jnp.sum(vrel * f.n, 0)

@@ -23,8 +23,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from jaxcon.core import layout as L
-from jaxcon.solvers.contact import Impulses, Rows, sweep
+from jaxcon.solvers.contact import Impulses, Rows, finish_row, sweep
 
 
 def solve_rows(rows: Rows, soft, push_velocity):
@@ -47,14 +46,7 @@ def _soft_row(vrel, f: Rows, soft, mu, ln, lt):
     mass_scale, impulse_scale = soft
     vn = jnp.sum(vrel * f.n, 0)
     new_n = jnp.maximum(ln + mass_scale * f.k * (f.target - vn) - impulse_scale * ln, 0)
-    dn = new_n - ln
-    vrel = vrel + (f.winv * dn) * f.n
-    vt = vrel - f.n * jnp.sum(vrel * f.n, 0)
-    new_t = lt - vt * f.k
-    length, inv = L.safe_length(new_t)
-    limit = mu * new_n
-    new_t = new_t * jnp.where(length >= limit, limit * inv, 1)
-    return f.n * dn + (new_t - lt), new_n, new_t
+    return finish_row(vrel, f, mu, ln, new_n, lt)
 
 
 def soft_sweep(cs, w, v, obs: Rows, pairs: Rows, imp: Impulses, obs_soft, pair_soft):
