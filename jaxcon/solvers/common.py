@@ -155,11 +155,12 @@ def contact_begin(sys, x, v, lam_ws, beta, h, split: bool, warm: bool, factor=1.
     return v_free, v, fr, bias, obs, pairs, lam, imp
 
 
-def contact_end(sys, x, v, v_free, obs, pairs, imp, h, v_pseudo=None):
+def contact_end(sys, x, v, v_free, obs, pairs, imp, h, v_pseudo=None, passes=1):
     """New positions: x + h (v + v_pseudo) with the time-of-impact correction (a particle whose velocity
     changed at tau within the step moved at its old velocity until then: x' = x + tau v_free + (h - tau) v'),
-    then the position safety pass. `v_pseudo`: split impulses' pseudo-velocity (moves, then is discarded)."""
+    then the position safety pass (`passes`: see contact.project_overlaps). `v_pseudo`: split impulses'
+    pseudo-velocity (moves, then is discarded)."""
     cs = sys.contact
     dx = -contact.impact_times(cs, obs, pairs, imp, x.shape) * (v - v_free)
     move = v if v_pseudo is None else v + v_pseudo
-    return contact.project_overlaps(cs, sys.w, x + h * move + dx)
+    return contact.project_overlaps(cs, sys.w, x + h * move + dx, passes)
