@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -153,6 +154,30 @@ def contact_begin(sys, x, v, lam_ws, beta, h, split: bool, warm: bool, factor=1.
     v, lam = warm_start(sys, v, fr, lam_ws, factor, gradient)
     v, imp = contact.warm_start(cs, sys.w, v, obs, pairs, imp_ws, factor)
     return v_free, v, fr, bias, obs, pairs, lam, imp
+
+
+def restitution_phases(sys, v_free, obs, pairs, iterations: int, carry, body):
+    """The contact solve in two phases sharing `iterations` (at least one each): compression (every target
+    without restitution), then restitution, continued from it; the restitution phase's change is scaled back
+    where it would raise the kinetic energy (contact.restitution_scale). `body(obs, pairs)` returns one
+    iteration, carry = (v, ...) -> carry. One loop, whose rows switch targets between the phases, so the
+    iteration is traced and compiled once. Returns the carry mixed leaf by leaf."""
+    first = max(iterations // 2, 1)
+    total = first + max(iterations - first, 1)
+
+    def phase_rows(f, late):
+        return None if f is None else f._replace(target=jnp.where(late, f.target, f.target_c))
+
+    def one(i, state):
+        carry, saved = state
+        late = i >= first
+        carry = body(phase_rows(obs, late), phase_rows(pairs, late))(carry)
+        saved = jax.tree.map(lambda new, old: jnp.where(i == first - 1, new, old), carry, saved)
+        return carry, saved
+
+    bounced, compressed = lax.fori_loop(0, total, one, (carry, carry))
+    s = contact.restitution_scale(sys.w, v_free, compressed[0], bounced[0], contact.bouncing(obs, pairs))
+    return jax.tree.map(lambda a, b: a + s * (b - a), compressed, bounced)
 
 
 def contact_end(sys, x, v, v_free, obs, pairs, imp, h, v_pseudo=None, passes=1):

@@ -15,13 +15,14 @@ from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact_jacobi
 from jaxcon.solvers.common import (
-    contact_begin,
-    contact_end,
     check_stabilization,
     clamp_ropes,
+    contact_begin,
+    contact_end,
     frames,
     position_correction,
     pseudo_velocities,
+    restitution_phases,
     velocity_bias,
     warm_start,
 )
@@ -135,8 +136,11 @@ class Jacobi(Solver):
         split = self.stabilization == "split"
         v_free, v, fr, bias, obs, pairs, lam, imp = contact_begin(sys, x, v, lam_ws, beta, h, split,
                                                                   self.warm_start)
-        body = contact_jacobi.iteration(sys, fr, bias, obs, pairs, relax)
-        v, lam, imp = lax.fori_loop(0, self.iterations, body, (v, lam, imp))
+
+        def run(obs, pairs):
+            return functools.partial(contact_jacobi.iteration(sys, fr, bias, obs, pairs, relax), 0)
+
+        v, lam, imp = restitution_phases(sys, v_free, obs, pairs, self.iterations, (v, lam, imp), run)
         v_p = None
         if split and fr:
             rod_relax = jnp.asarray(1.0 / max_degree(topo), dtype) if relax is None else relax

@@ -4,7 +4,6 @@ from __future__ import annotations
 import functools
 from typing import Any
 
-import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -15,14 +14,15 @@ from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact
 from jaxcon.solvers.common import (
-    contact_begin,
-    contact_end,
     apply_impulses,
     check_stabilization,
     clamp_ropes,
+    contact_begin,
+    contact_end,
     frames,
     position_correction,
     pseudo_velocities,
+    restitution_phases,
     velocity_bias,
     warm_start,
 )
@@ -142,21 +142,15 @@ class PGS(Solver):
             sys, x, v, lam_ws, beta, h, split, self.warm_start, factor, self.warm_start_gradient)
         block_sweep = self._block_sweep(topo, fr, bias)
 
-        def sweeps(obs, pairs, count, carry):
-            def sweep(_, carry):
+        def sweeps(obs, pairs):
+            def sweep(carry):
                 v, lam, imp = carry
                 v, lam = block_sweep(v, lam)
                 v, imp = contact.sweep(cs, sys.w, v, obs, pairs, imp)
                 return v, lam, imp
-            return lax.fori_loop(0, count, sweep, carry)
+            return sweep
 
-        # Compression (no restitution), then restitution; the restitution phase is scaled back where it would
-        # raise the kinetic energy (contact.restitution_scale). Both phases share the `iterations` sweeps.
-        first = max(self.iterations // 2, 1)
-        compressed = sweeps(contact.compression(obs), contact.compression(pairs), first, (v, lam, imp))
-        bounced = sweeps(obs, pairs, max(self.iterations - first, 1), compressed)
-        s = contact.restitution_scale(sys.w, v_free, compressed[0], bounced[0], contact.bouncing(obs, pairs))
-        v, lam, imp = jax.tree.map(lambda a, b: a + s * (b - a), compressed, bounced)
+        v, lam, imp = restitution_phases(sys, v_free, obs, pairs, self.iterations, (v, lam, imp), sweeps)
         v_p = (pseudo_velocities(sys, fr, position_correction(topo, fr, beta, h), self.iterations)
                if split and fr else None)
         return contact_end(sys, x, v, v_free, obs, pairs, imp, h, v_p, passes=None), v, (lam, imp)
