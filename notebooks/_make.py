@@ -321,8 +321,10 @@ plt.tight_layout()'''),
            "after 1 s for a shot of (3.5, 0.08) m/s; gradient descent (Adam) on the cue ball's velocity, "
            "starting from a straight shot at 3 m/s, looks for a shot that puts ball 2 there. The impacts' times "
            "of impact are in the gradient: without them the final positions would not depend smoothly on the "
-           "aim. The landscape is not convex (a shot that misses the rack has zero gradient), so the fit keeps "
-           "its best iterate."),
+           "aim. The landscape is not convex (a shot that misses the rack has zero gradient, and the order of the "
+           "impacts changes across kinks), so the fit keeps its best iterate, and the step size matters: from "
+           "the same start, Adam at 0.02 reaches 6e-10 m^2 in 150 steps, at 0.05 it stalls at 3e-2 m^2 in a kink "
+           "and at 0.1 it finds another shot at 4e-4 m^2 (measured on the 2-core CPU)."),
     ("code", '''model, state = jc.scenes.billiards(rows=2, friction=0.0)
 dt, steps, ball = 1 / 120, 120, 2
 
@@ -332,7 +334,7 @@ def final_positions(v0):
 
 target = final_positions(jnp.array([3.5, 0.08]))[ball]
 loss_and_grad = jax.jit(jax.value_and_grad(lambda v0: jnp.sum((final_positions(v0)[ball] - target) ** 2)))
-opt = optax.adam(optax.exponential_decay(0.05, 50, 0.5))
+opt = optax.adam(optax.exponential_decay(0.02, 50, 0.5))
 v0 = jnp.array([3.0, 0.0])
 opt_state = opt.init(v0)
 history, best = [], (np.inf, v0)
