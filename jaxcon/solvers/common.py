@@ -177,7 +177,11 @@ def restitution_phases(sys, v_free, obs, pairs, iterations: int, carry, body):
 
     bounced, compressed = lax.fori_loop(0, total, one, (carry, carry))
     s = contact.restitution_scale(sys.w, v_free, compressed[0], bounced[0], contact.bouncing(obs, pairs))
-    return jax.tree.map(lambda a, b: a + s * (b - a), compressed, bounced)
+
+    def mix(a, b):       # integer leaves (a neighbour grid's partners and overflow) are the same in both phases
+        return a + s * (b - a) if jnp.issubdtype(a.dtype, jnp.floating) else b
+
+    return jax.tree.map(mix, compressed, bounced)
 
 
 def contact_end(sys, x, v, v_free, obs, pairs, imp, h, v_pseudo=None, passes=1):
