@@ -96,6 +96,7 @@ class PGS(Solver):
         check_scalar("PGS", "warm_start_factor", self.warm_start_factor, 0.0, 1.0)
 
     supports_contacts = True
+    supports_grid = True
 
     def _substep(self, sys, x, v, lam_ws, h):
         if sys.contact is not None:
@@ -156,7 +157,10 @@ class PGS(Solver):
         compressed = sweeps(contact.compression(obs), contact.compression(pairs), first, (v, lam, imp))
         bounced = sweeps(obs, pairs, max(self.iterations - first, 1), compressed)
         s = contact.restitution_scale(sys.w, v_free, compressed[0], bounced[0], contact.bouncing(obs, pairs))
-        v, lam, imp = jax.tree.map(lambda a, b: a + s * (b - a), compressed, bounced)
+        # (a grid's partners and overflow, integers, are the same in both phases and are not blended)
+        v, lam, parts = jax.tree.map(lambda a, b: a + s * (b - a), compressed[:2] + (tuple(compressed[2][:4]),),
+                                     bounced[:2] + (tuple(bounced[2][:4]),))
+        imp = bounced[2]._replace(obs_n=parts[0], obs_t=parts[1], pair_n=parts[2], pair_t=parts[3])
         v_p = (pseudo_velocities(sys, fr, position_correction(topo, fr, beta, h), self.iterations)
                if split and fr else None)
         return contact_end(sys, x, v, v_free, obs, pairs, imp, h, v_p, passes=None), v, (lam, imp)
