@@ -52,9 +52,10 @@ def test_energy_never_increases_without_gravity(solver):
                             restitution=0.8)
     _, traj = jc.rollout(model, state, solver, 1 / 120, 150)
     ke = np.concatenate([[float(jc.kinetic_energy(model, state.v))], np.asarray(jc.kinetic_energy(model, traj.v))])
-    # PGS scales restitution back so that no step gains energy; Jacobi has no such guard, and gains up to 1e-5 of
-    # KE_0 in a step here (Baumgarte push-out), as it does with all pairs (collide=True: 3e-6)
-    tol = 1e-9 if isinstance(solver, jc.PGS) else 1e-4
+    # PGS scales restitution back so that no impulse phase gains energy; what is left is Baumgarte push-out of
+    # overlaps (6e-9 of KE_0 in one step here; all pairs, collide=True: 2e-7). Jacobi has no restitution guard
+    # and gains up to 1e-5 of KE_0 in a step here, as it does with all pairs (3e-6).
+    tol = 1e-6 if isinstance(solver, jc.PGS) else 1e-4
     assert np.all(np.diff(ke) <= tol * ke[0])
     assert ke[-1] < ke[0]           # collisions happened and were inelastic
     assert float(jnp.max(jc.diagnose(model, traj, state).penetration)) < 0.01 * 2 * R
@@ -100,7 +101,7 @@ def test_collide_true_above_the_all_pairs_limit_uses_the_grid():
     assert np.all(np.isfinite(np.asarray(final.x)))
     assert int(jnp.max(traj.contact_overflow)) == 0
     assert int(jnp.sum(final.contact_partners >= 0)) > n         # the lattice's neighbours were found
-    assert float(jnp.max(jc.penetration(model, final.x, final.contact_partners))) < 0.05 * 0.02
+    assert float(jnp.max(jc.penetration(model, final.x, final.contact_partners))) < 0.02 * 0.02
 
 
 def test_bad_max_neighbours_and_refusing_solvers():

@@ -10,7 +10,7 @@ Pairs come from one of two places. A static list (``collide=True`` up to `MAX_AL
 particles, or the user's own pairs) is split into rounds at build time, as below. A neighbour grid
 (``collide="grid"``, or ``collide=True`` above that size) finds the pairs inside every (sub)step instead:
 each particle keeps up to K = ``max_neighbours`` partners (`jaxcon.solvers.contact.neighbours`), and the
-pairs are solved Jacobi-style with mass splitting.
+pairs are solved slot by slot (the rows of one slot together, with mass splitting).
 
 Obstacle contacts need no broad phase: each obstacle's contacts are solved together, vectorised over every
 particle. Candidate pairs are split into rounds of disjoint pairs (a round-robin schedule for all pairs: n

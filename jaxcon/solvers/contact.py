@@ -21,10 +21,11 @@ Friction is solved after each contact's normal row, as a 2-D or 3-D vector clamp
 Neighbour grid (a model built with ``collide="grid"``, or ``collide=True`` above 2048 particles): the pairs are
 found at the start of every (sub)step by `neighbours` (a spatial hash of the positions) and kept in K slots per
 particle; their rows are those above, with `Rows.i`/`Rows.j` [n, K] naming the particles (j = -1: empty slot,
-k = 0). A PGS sweep solves them in one Jacobi pass with mass splitting after the obstacles (`grid_pass`), the
-position safety pass projects them Jacobi-style too, and the warm start matches last step's impulses by
-partner (a slot's impulse is carried over only if the same pair is listed again). `Impulses.partners` [n, K]
-and `Impulses.overflow` (the candidates that did not fit) travel with the impulses.
+k = 0). A PGS sweep solves them after the obstacles slot by slot, the rows of one slot together with mass
+splitting (`grid_pass`); the position safety pass projects them the same way, and the warm start matches last
+step's impulses by partner (a slot's impulse is carried over only if the same pair is listed again).
+`Impulses.partners` [n, K] and `Impulses.overflow` (the candidates that did not fit) travel with the impulses.
+The time-of-impact correction applies to grid pairs as to listed ones.
 """
 from __future__ import annotations
 
@@ -180,13 +181,11 @@ GRID_SKIN = 0.25
 #: 1.4 diameters); at 2 a cell may be twice as wide.
 GRID_SCAN = 2
 
-#: Jacobi passes over a grid model's pair rows in each PGS sweep (one leaves a landing stack of 4 discs
-#: overlapping by 2.7% of a diameter with PGS(10) and 8 position passes; two, with `GRID_OVERLAP_PASSES`, 0.5%).
-GRID_SWEEP_PASSES = 2
-
-#: PGS's position safety passes for a grid model (Jacobi-style passes converge more slowly than the rounds'
-#: Gauss-Seidel ones: 8 left 1.0%, 16 0.5% on that stack).
-GRID_OVERLAP_PASSES = 16
+#: PGS's position safety passes for a grid model. Its slot-by-slot passes converge more slowly than the rounds'
+#: Gauss-Seidel ones: on 18 discs in 4 staggered rows landing on a floor (PGS(10), dt 1/120) the deepest overlap
+#: was 0.86% of a diameter with 8 passes, 0.30% with 16 and 0.12% with 32 (all pairs: 0.03% with 8); a pass
+#: costs K small steps over n particles, against n - 1 rounds for all pairs.
+GRID_OVERLAP_PASSES = 32
 
 _HASH = np.array([73856093, 19349663, 83492791], np.uint32)
 
@@ -442,8 +441,7 @@ def sweep(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, imp: Impulses, row=No
         on, ot = jnp.stack(on), jnp.stack(ot)
     pn, pt = imp.pair_n, imp.pair_t
     if pairs is not None and pairs.i is not None:
-        for _ in range(GRID_SWEEP_PASSES):
-            v, pn, pt = grid_pass(cs, w, v, pairs, pn, pt, row, extra[1])
+        v, pn, pt = grid_pass(cs, w, v, pairs, pn, pt, row, extra[1])
     elif pairs is not None:
         dim, shape = v.shape[0], v.shape
         ia, ja = jnp.asarray(ct.i.array), jnp.asarray(ct.j.array)
@@ -462,32 +460,41 @@ def sweep(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, imp: Impulses, row=No
     return v, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
 
-def _active_count(cs, pairs: Rows, vrel, ln, k):
-    """Per particle [n], the grid rows at it that push: those that hold an impulse, or whose unrelaxed update
-    from `vrel` gives one (as contact_jacobi.contact_counts)."""
-    vn = jnp.sum(vrel * pairs.n, 0)
-    act = (((ln > 0) | (ln + (pairs.target - vn) * k > 0)) & (k > 0)).astype(vrel.dtype)
-    n = act.shape[0]
-    ia, ja = pair_index(cs.ct, pairs)
-    return jnp.zeros((n,), act.dtype).at[ia].add(act.reshape(-1)).at[ja].add(act.reshape(-1))
+def _slot(a, s):
+    """Slot s of a grid array [..., n, K] (None stays None)."""
+    return None if a is None else jnp.take(a, s, axis=-1)
 
 
 def grid_pass(cs: ContactSystem, w, v, pairs: Rows, pn, pt, row=None, extra=None):
-    """One Jacobi pass over a grid model's pair rows from the same v, relaxed by mass splitting (each row takes
-    the effective mass 1 / (c_i w_i + c_j w_j), c the rows that push at each particle; jaxcon.solvers.
-    contact_jacobi). Returns (v, pair_n, pair_t)."""
+    """One pass over a grid model's pair rows, slot by slot: the rows of one slot (one per particle, whose
+    partners may repeat) are solved together from the same v, relaxed by mass splitting (each takes the
+    effective mass 1 / (c_i w_i + c_j w_j), c the slot's rows that push at each particle, as
+    jaxcon.solvers.contact_jacobi does), and the slots follow one another Gauss-Seidel-style. Returns
+    (v, pair_n, pair_t)."""
     dim, shape = v.shape[0], v.shape
-    vf, wf = v.reshape(dim, -1), w.reshape(-1)
-    ia, ja = pair_index(cs.ct, pairs)
-    vrel = (vf[:, ja] - vf[:, ia]).reshape(pairs.n.shape)
-    c = _active_count(cs, pairs, vrel, pn, pairs.k)
-    k = L.safe_reciprocal((c[ia] * wf[ia] + c[ja] * wf[ja]).reshape(pn.shape)) * (pairs.k > 0).astype(v.dtype)
-    f = pairs._replace(k=k)
-    if row is None:
-        P, pn, pt = _solve_row(vrel, f, cs.friction, pn, pt)
-    else:
-        P, pn, pt = row(vrel, f, cs.friction, pn, pt, extra)
-    return v + _pair_total(cs.ct, w, P, -1.0, (ia, ja)).reshape(shape), pn, pt
+    wf = w.reshape(-1)
+    n, K = pn.shape
+    me = jnp.arange(n)
+
+    def one_slot(s, carry):
+        vf, pn, pt = carry
+        f = Rows(*(_slot(a, s) for a in pairs))
+        j = jnp.maximum(f.j, 0)
+        ln, lt = pn[:, s], pt[:, :, s]
+        vrel = vf[:, j] - vf
+        vn = jnp.sum(vrel * f.n, 0)
+        act = (((ln > 0) | (ln + (f.target - vn) * f.k > 0)) & (f.k > 0)).astype(vf.dtype)
+        c = jnp.zeros((n,), vf.dtype).at[me].add(act).at[j].add(act)
+        f = f._replace(k=L.safe_reciprocal(c * wf + c[j] * wf[j]) * (f.k > 0).astype(vf.dtype))
+        if row is None:
+            P, ln, lt = _solve_row(vrel, f, cs.friction, ln, lt)
+        else:
+            P, ln, lt = row(vrel, f, cs.friction, ln, lt, None if extra is None else tuple(_slot(a, s) for a in extra))
+        vf = vf.at[:, j].add(wf[j] * P) - wf * P
+        return vf, pn.at[:, s].set(ln), pt.at[:, :, s].set(lt)
+
+    vf, pn, pt = lax.fori_loop(0, K, one_slot, (v.reshape(dim, -1), pn, pt))
+    return vf.reshape(shape), pn, pt
 
 
 def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, factor=1.0):
@@ -612,13 +619,13 @@ OVERLAP_PASSES = 8
 
 def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pairs: Optional[Rows] = None):
     """Move overlapping contacts apart at position level (non-linear Gauss-Seidel, as Box2D v2's position
-    solver), `passes` times (default: `OVERLAP_PASSES` with pairs, else 1): pair rounds, then obstacles (which
-    cannot move, so they have the last word; a heavy
-    ball on light ones is then pushed out of them without pushing the bottom one into the floor). Velocities
+    solver), `passes` times (default: `OVERLAP_PASSES` with pairs, `GRID_OVERLAP_PASSES` with a grid, else 1):
+    pair rounds, then obstacles (which cannot move, so they have the last word; a heavy ball on light ones
+    is then pushed out of them without pushing the bottom one into the floor). Velocities
     are not touched, so no kinetic energy or momentum is added; it only acts where the velocity solve left an
     overlap (an under-converged cluster, or the time-of-impact correction of a particle whose velocity was
     also changed by a later contact). A grid model's pairs (the rows `pairs` of this step) are projected
-    Jacobi-style instead, each overlap split between the overlaps at its particles (mass splitting)."""
+    slot by slot instead (the overlaps of one slot together, each split between the overlaps at its particles)."""
     ct = cs.ct
     dim, shape = x.shape[0], x.shape
     r = cs.radius[0]
@@ -651,15 +658,19 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
         return lax.fori_loop(0, ct.rounds, one_round, x.reshape(dim, -1)).reshape(shape)
 
     def grid_pairs(x):
-        ia, ja = pair_index(ct, pairs)
         wf, rf = w.reshape(-1), cs.radius_flat
-        xf = x.reshape(dim, -1)
-        dist, n = L.safe_norm(xf[:, ja] - xf[:, ia], axis=0)
-        over = jnp.maximum(rf[ia] + rf[ja] - dist, 0) * (pairs.k.reshape(-1) > 0)
-        hit = (over > 0).astype(x.dtype)
-        c = jnp.zeros_like(wf).at[ia].add(hit).at[ja].add(hit)
-        push = over * L.safe_reciprocal(c[ia] * wf[ia] + c[ja] * wf[ja])
-        return x + _pair_total(ct, w, n * push, -1.0, (ia, ja)).reshape(shape)
+        me = jnp.arange(wf.shape[0])
+
+        def one_slot(s, xf):                      # slot by slot, as grid_pass
+            j = jnp.maximum(pairs.j[:, s], 0)
+            dist, n = L.safe_norm(xf[:, j] - xf, axis=0)
+            over = jnp.maximum(rf + rf[j] - dist, 0) * (pairs.k[:, s] > 0)
+            hit = (over > 0).astype(xf.dtype)
+            c = jnp.zeros_like(wf).at[me].add(hit).at[j].add(hit)
+            P = n * (over * L.safe_reciprocal(c * wf + c[j] * wf[j]))
+            return xf.at[:, j].add(wf[j] * P) - wf * P
+
+        return lax.fori_loop(0, pairs.j.shape[1], one_slot, x.reshape(dim, -1)).reshape(shape)
 
     def one_pass(_, x):
         if ct.n_pairs:
