@@ -83,6 +83,9 @@ def test_overflow_is_reported():
             with pytest.warns(UserWarning, match="max_neighbours"):
                 d = jc.diagnose(model, traj, state)
             assert bool(d.overflowed) and int(jnp.max(d.overflow)) > 0
+            # with save_every, a record holds the overflow of every step since the previous one
+            _, every2 = jc.rollout(model, state, jc.PGS(2), 1 / 60, 2, save_every=2)
+            assert int(every2.contact_overflow[0]) == int(jnp.sum(traj.contact_overflow))
         else:
             d = jc.diagnose(model, traj, state)
             assert not bool(d.overflowed) and int(jnp.max(d.overflow)) == 0
@@ -102,6 +105,23 @@ def test_collide_true_above_the_all_pairs_limit_uses_the_grid():
     assert int(jnp.max(traj.contact_overflow)) == 0
     assert int(jnp.sum(final.contact_partners >= 0)) > n         # the lattice's neighbours were found
     assert float(jnp.max(jc.penetration(model, final.x, final.contact_partners))) < 0.02 * 0.02
+
+
+def test_candidates_skip_joined_pairs_and_list_each_pair_once():
+    from jaxcon.core import layout
+    from jaxcon.core.system import System
+    from jaxcon.solvers.contact import neighbours, partners_out
+
+    # in a row, each touching the next: 2, 0, 1, 4, with 0-1 joined by a rod; 3 far away
+    x = np.array([[0.1, 0.0], [0.2, 0.0], [0.0, 0.0], [5.0, 0.0], [0.3, 0.0]])
+    model, _ = jc.build(x, np.ones(5), rods=[(0, 1)], radius=0.05, collide="grid", max_neighbours=2)
+    sys = System.from_model(model, jnp.float64)
+    t = model.topology
+    xi = layout.particles_in(t, jnp.asarray(x))
+    partners, overflow = neighbours(sys.contact, xi, jnp.zeros_like(xi), 0.01)
+    partners = np.asarray(partners_out(model.contact, partners))
+    got = {(i, int(j)) for i in range(5) for j in partners[i] if j >= 0}
+    assert got == {(0, 2), (1, 4)} and int(overflow) == 0
 
 
 def test_bad_max_neighbours_and_refusing_solvers():

@@ -159,7 +159,8 @@ class Trajectory:
     """Per-step record of a rollout (after each step): x, v [steps, n, dim]; lam [steps, m]; for models with
     contacts also contact_n [steps, k] and contact_t [steps, k, dim] (see `State`); for models with a neighbour
     grid also contact_partners [steps, n, K] (see `State`) and contact_overflow [steps] int: the candidate pairs
-    of each step the grid had no room for (> 0: contacts were missed; raise `max_neighbours`)."""
+    the grid had no room for, summed over the steps since the previous record (every step's with save_every 1;
+    > 0: contacts may have been missed; raise `max_neighbours`)."""
 
     x: Array
     v: Array

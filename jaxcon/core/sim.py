@@ -153,9 +153,21 @@ def _time_loop(sys, solver, carry, dt, steps, save_every, checkpoint=None, remat
     def one(_, carry):
         return step(carry)
 
+    grid = sys.contact is not None and sys.contact.ct.has_grid
+
+    def one_counting(_, carry):
+        """A step that also sums a grid's overflow over the steps between two records."""
+        carry, total = carry
+        carry = step(carry)
+        return carry, total + carry[2][1].overflow
+
     def body(carry, _):
         if save_every == 1:
             carry = one(0, carry)
+        elif grid:
+            carry, total = lax.fori_loop(0, save_every, one_counting, (carry, jnp.zeros((), jnp.int32)))
+            blocks, imp = carry[2]
+            carry = carry[:2] + ((blocks, imp._replace(overflow=total)),)
         else:
             carry = lax.fori_loop(0, save_every, one, carry)
         x, v, lam = carry

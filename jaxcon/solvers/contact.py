@@ -240,7 +240,7 @@ def neighbours(cs: ContactSystem, x, v, h):
         ok = (idx < hi[:, None]) & jnp.all(c[:, j] == qc[:, :, None], axis=0)
         cands.append(jnp.where(ok, j, -1))
         missed = missed + jnp.maximum(hi - lo - scan, 0).astype(jnp.int32)
-    j = jnp.concatenate(cands, 1)                                   # [n, 3^dim K]
+    j = jnp.concatenate(cands, 1)                                   # [n, 3^dim scan]
     jc = jnp.maximum(j, 0)
     d = xf[:, jc] - xf[:, :, None]
     dist = jnp.sqrt(jnp.sum(d * d, 0))
@@ -370,6 +370,8 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None):
         index = (ia.reshape(-1), ja.reshape(-1))
     if valid is not None:
         pairs = _swept(xf[:, ja] - xf[:, ia], vf[:, ja] - vf[:, ia], cs.radius_flat[ia] + cs.radius_flat[ja], h)
+        live = jnp.asarray(valid)          # a padding or empty slot is no impact (it would hide a real one)
+        pairs = pairs[:3] + (pairs[3] & live, pairs[4] & live, pairs[5])
     obs, pairs = _first_impacts(ct, obs, pairs, xf.shape[1], index)
 
     def finish(geometry, vn0, vn1, winv, k):
