@@ -2,12 +2,15 @@
 (violation, energy, impulses) that names what went wrong."""
 from __future__ import annotations
 
+import warnings
 from typing import Any, NamedTuple, Optional
 
 import jax.numpy as jnp
+import numpy as np
 
 from jaxcon.core.layout import safe_norm
 from jaxcon.core.model import Model, State, Trajectory
+from jaxcon.core.pytree import concrete
 
 Array = Any
 
@@ -72,9 +75,23 @@ def violation(model: Model, x):
     return err / jnp.where(L > 0, L, 1)
 
 
-def contact_sizes(model: Model):
-    """[k] the size each contact's overlap is measured against: the particle's radius for obstacles, the sum
-    of radii for pairs ([0] without contacts)."""
+def _grid_partners(owner, model, partners, lead):
+    """A grid model's partners [..., n, K] (checked), or raise: its pair contacts change from step to step."""
+    c = model.contact
+    if partners is None:
+        raise ValueError(f"{owner}: this model finds its pairs with a neighbour grid, so its pair contacts depend on "
+                         "the step: pass `partners` (State.contact_partners or Trajectory.contact_partners)")
+    shape = tuple(jnp.shape(partners))
+    if shape[-2:] != (model.topology.n, c.grid_k) or (lead is not None and shape[:-2] != tuple(lead)):
+        raise ValueError(f"{owner}: `partners` must have shape [..., {model.topology.n}, {c.grid_k}] matching x, "
+                         f"got {shape}")
+    return jnp.asarray(partners)
+
+
+def contact_sizes(model: Model, partners=None):
+    """[k] (or [..., k]) the size each contact's overlap is measured against: the particle's radius for
+    obstacles, the sum of radii for pairs ([0] without contacts). A grid model needs its `partners`
+    [..., n, K] (empty slots: size 0)."""
     c = model.contact
     if c is None:
         return jnp.zeros((0,))
@@ -82,13 +99,20 @@ def contact_sizes(model: Model):
     parts = [jnp.tile(r, c.n_obstacles)]
     if c.n_pairs:
         parts.append(r[c.pairs.array[:, 0]] + r[c.pairs.array[:, 1]])
-    return jnp.concatenate(parts)
+    if c.has_grid:
+        p = _grid_partners("contact_sizes", model, partners, None)
+        lead = p.shape[:-2]
+        size = jnp.where(p >= 0, r[:, None] + r[jnp.maximum(p, 0)], 0).reshape(lead + (-1,))
+        parts = [jnp.broadcast_to(a, lead + a.shape) for a in parts] + [size]
+    return jnp.concatenate(parts, -1)
 
 
-def penetration(model: Model, x):
+def penetration(model: Model, x, partners=None):
     """Overlap depth (m, >= 0) of every contact [..., k], in the order of `State.contact_n`: planes
     (max(offset + r - n . x, 0)), spheres (max(R + r - |x - c|, 0)), then pairs (max(r_i + r_j - |x_j - x_i|, 0)).
-    [..., 0] for a model without contacts. x: [..., n, dim]."""
+    [..., 0] for a model without contacts. x: [..., n, dim]. A model with a neighbour grid needs `partners`
+    [..., n, K] (State.contact_partners, or Trajectory.contact_partners for a trajectory's x): its pair
+    contacts are the slots listed there (empty slots: 0)."""
     check_particles("penetration", model, "x", x)
     c = model.contact
     x = jnp.asarray(x)
@@ -105,6 +129,14 @@ def penetration(model: Model, x):
         i, j = c.pairs.array[:, 0], c.pairs.array[:, 1]
         dist, _ = safe_norm(x[..., j, :] - x[..., i, :], axis=-1)
         parts.append(r[i] + r[j] - dist)
+    if c.has_grid:
+        p = _grid_partners("penetration", model, partners, x.shape[:-2])
+        pc = jnp.maximum(p, 0)
+        flat = pc.reshape(p.shape[:-2] + (-1,))                                     # [..., n K]
+        xj = jnp.take_along_axis(x, flat[..., None], axis=-2).reshape(p.shape + (x.shape[-1],))
+        dist, _ = safe_norm(xj - x[..., :, None, :], axis=-1)
+        over = jnp.where(p >= 0, r[:, None] + r[pc] - dist, 0)
+        parts.append(over.reshape(p.shape[:-2] + (-1,)))
     return jnp.maximum(jnp.concatenate(parts, -1), 0)
 
 
@@ -136,6 +168,10 @@ class Diagnosis(NamedTuple):
       diverged:    bool, some step is bad.
       first_bad:   int, index of the first bad step, or -1.
       penetration: [steps] deepest contact overlap (m) of each step (``jc.penetration``); 0 without contacts.
+      overflow:    [steps] int, candidate pairs the neighbour grid had no room for (Trajectory.contact_overflow;
+                   0 for models without a grid). > 0 means contacts may have been missed in that step: build
+                   the model with a larger `max_neighbours`. Not counted as bad (it is not a divergence).
+      overflowed:  bool, some step has overflow > 0.
     """
 
     violation: Array
@@ -145,6 +181,8 @@ class Diagnosis(NamedTuple):
     diverged: Array
     first_bad: Array
     penetration: Array = None
+    overflow: Array = None
+    overflowed: Array = None
 
 
 def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> Diagnosis:
@@ -155,6 +193,9 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
     its largest relative violation exceeds VIOLATION_LIMIT (1.0), when its energy exceeds E_0 by more than
     ENERGY_LIMIT (10) energy scales, or when a contact of nonzero size overlaps by more than PENETRATION_LIMIT
     (0.5) of its size. NaNs compare as bad. Callable under jax.jit.
+
+    For a model with a neighbour grid, `overflow` reports each step's `traj.contact_overflow`; when it is known
+    now (outside jit) and some step overflowed, a warning says to raise `max_neighbours`.
     """
     if not isinstance(model, Model):
         raise TypeError(f"diagnose: `model` must be a jaxcon Model, got {type(model).__name__}")
@@ -196,13 +237,26 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
     finite = (jnp.all(jnp.isfinite(x), axis=(-1, -2)) & jnp.all(jnp.isfinite(v), axis=(-1, -2))
               & jnp.all(jnp.isfinite(traj.lam), axis=-1))
     ok = finite & (viol <= VIOLATION_LIMIT) & (gain <= ENERGY_LIMIT)
-    pen = penetration(model, x)
+    grid = model.contact is not None and model.contact.has_grid
+    if grid and (traj.contact_partners is None or traj.contact_overflow is None):
+        raise ValueError("diagnose: this model has a neighbour grid, so `traj` needs its contact_partners and "
+                         "contact_overflow (as jc.rollout records them)")
+    partners = traj.contact_partners if grid else None
+    pen = penetration(model, x, partners)
     if pen.shape[-1]:
-        size = contact_sizes(model)
+        size = contact_sizes(model, partners)
         ok = ok & jnp.all((pen <= PENETRATION_LIMIT * size) | (size <= 0), axis=-1)
         pen = jnp.max(pen, -1)
     else:
         pen = jnp.zeros(x.shape[:1], x.dtype)
     bad = ~ok
     first = jnp.where(jnp.any(bad), jnp.argmax(bad), -1)
-    return Diagnosis(viol, e, gain, bad, jnp.any(bad), first, pen)
+    overflow = jnp.asarray(traj.contact_overflow) if grid else jnp.zeros(x.shape[:1], jnp.int32)
+    known = concrete(overflow)
+    if grid and known is not None and np.any(np.asarray(known) > 0):
+        k = int(np.argmax(np.asarray(known) > 0))
+        warnings.warn(f"diagnose: the neighbour grid ran out of room in {int(np.sum(np.asarray(known) > 0))} "
+                      f"step(s), first at step {k} ({int(np.asarray(known)[k])} candidate pairs without a slot): "
+                      f"contacts may have been missed. Build the model with a larger `max_neighbours` (now "
+                      f"{model.contact.grid_k})", stacklevel=2)
+    return Diagnosis(viol, e, gain, bad, jnp.any(bad), first, pen, overflow, jnp.any(overflow > 0))

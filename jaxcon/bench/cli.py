@@ -56,6 +56,9 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("--speed-vs-error", action="store_true",
                    help="instead: sweep every solver over iterations, substeps and dt; error against cost "
                         "(JSON, CSV and, with matplotlib, plots)")
+    b.add_argument("--contact-grid", nargs="*", type=_positive_int, metavar="N",
+                   help="instead: PGS(10)'s cost per step with all-pairs contacts against the neighbour grid, for "
+                        "lattices of N discs (default 256 1024 2048)")
     b.add_argument("--out-dir", default="speed_vs_error", metavar="DIR",
                    help="output folder of --speed-vs-error (created if missing; default speed_vs_error)")
     return p
@@ -82,6 +85,10 @@ def main(argv=None) -> int:
             p.error(f"--out-dir {args.out_dir}: not a writable folder")
         from jaxcon.bench.speed_vs_error import run
         run(small=args.small, out_dir=args.out_dir)
+        return 0
+    if args.cmd == "bench" and args.contact_grid is not None:
+        from jaxcon.bench.contact_grid import main as contact_grid
+        contact_grid(tuple(args.contact_grid) or (256, 1024, 2048))
         return 0
     if args.cmd == "bench" and not args.f32_only:
         jax.config.update("jax_enable_x64", True)

@@ -6,13 +6,22 @@ A model may have three kinds of contact, each a unilateral constraint on a gap C
 * sphere s: C = |x - c_s| - R_s - r           (one per particle and static sphere)
 * pair:     C = |x_j - x_i| - r_i - r_j       (candidate pairs, all of them when ``collide=True``)
 
+Pairs come from one of two places. A static list (``collide=True`` up to `MAX_ALL_PAIRS_PARTICLES`
+particles, or the user's own pairs) is split into rounds at build time, as below. A neighbour grid
+(``collide="grid"``, or ``collide=True`` above that size) finds the pairs inside every (sub)step instead:
+each particle keeps up to K = ``max_neighbours`` partners (`jaxcon.solvers.contact.neighbours`), and the
+pairs are solved slot by slot (the rows of one slot together, with mass splitting).
+
 Obstacle contacts need no broad phase: each obstacle's contacts are solved together, vectorised over every
 particle. Candidate pairs are split into rounds of disjoint pairs (a round-robin schedule for all pairs: n
 particles in n - 1 rounds, or n rounds when n is odd), padded to one width, so a sweep is one loop over rounds
 whose body does not depend on n: the program's size is the same for 16 balls and for 1000.
 
 Contact impulses are reported in one order: plane contacts (plane-major: index p * n + particle), then sphere
-contacts (s * n + particle), then pairs in the order of `ContactTopology.pairs`.
+contacts (s * n + particle), then pairs in the order of `ContactTopology.pairs`. A grid model has no static
+pairs: its pair slots come last instead, particle-major (index Q * n + particle * K + slot), slot s of particle
+i holding the contact with `State.contact_partners[i, s]` (-1: an empty slot, impulse 0). Each pair sits in
+one slot only, in the row of its lower-numbered particle.
 """
 from __future__ import annotations
 
@@ -21,9 +30,25 @@ import numpy as np
 from jaxcon.core.pytree import StaticArray
 from jaxcon.core.topology import greedy_colouring, parse_pairs
 
-# collide=True solves every pair in every sweep: O(n^2) work per sweep. Above this many particles, pass
-# candidate pairs instead (the neighbour grid that would lift this limit is not built yet).
-MAX_ALL_PAIRS_PARTICLES = 2048
+# collide=True solves every pair in every sweep: O(n^2) work per sweep, in n - 1 rounds. Above this many
+# particles it uses the neighbour grid instead. Measured (docs/contacts.md, PGS(10), 2 CPU cores) the grid is
+# cheaper per step at every size from 32 particles on (1.0 against 1.3 ms at 32, 6.8 against 89 ms at 256,
+# 22 ms against 2.6 s at 1024). The all-pairs rounds are Gauss-Seidel over every pair: they converge better,
+# need no capacity and work with every solver and with substeps, so they stay the default while a step costs
+# tens of milliseconds; above that, all pairs is an explicit list (any solver) and the grid the default.
+MAX_ALL_PAIRS_PARTICLES = 256
+
+#: Default capacity of the neighbour grid (partners kept per particle), by dimension: a disc of equal discs
+#: touches at most 6, a ball of equal balls 12, plus room for the ones about to touch.
+DEFAULT_MAX_NEIGHBOURS = {2: 8, 3: 16}
+
+
+def grid_table_size(n: int) -> int:
+    """Buckets of the neighbour grid's spatial hash: 2^30 whatever n. No table is stored (a bucket is a range of
+    the particles sorted by bucket), so a large one costs nothing and makes two occupied cells sharing a bucket
+    rare (such a bucket is still handled: each entry's cell is checked, and its extra entries count towards
+    the overflow)."""
+    return 1 << 30
 
 
 def round_robin(n: int) -> list:
@@ -67,8 +92,11 @@ class ContactTopology:
     Hashes and compares by content, so it can be jit metadata.
     """
 
-    def __init__(self, n: int, n_planes: int, n_spheres: int, pairs: np.ndarray, pos=None):
+    def __init__(self, n: int, n_planes: int, n_spheres: int, pairs: np.ndarray, pos=None, grid_k: int = 0,
+                 exclude=None):
         self.n = int(n)
+        self.grid_k = int(grid_k)
+        self._grid(exclude, pos)
         self.n_planes = int(n_planes)
         self.n_spheres = int(n_spheres)
         pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
@@ -100,8 +128,36 @@ class ContactTopology:
             self.i = self.j = self.valid = self.src = self.slot = None
             self.rounds, self.width = 0, 0
         self._key = (self.n, self.n_planes, self.n_spheres, pairs.tobytes(), None if pos is None else
-                     np.asarray(pos).tobytes())
+                     np.asarray(pos).tobytes(), self.grid_k, None if self.grid_exclude is None else
+                     self.grid_exclude.array.tobytes())
         self._hash = hash(self._key)
+
+    def _grid(self, exclude, pos):
+        """The neighbour grid's static parts: the hash table size, each internal particle's user index `uid`,
+        and `exclude` [n, D]: per internal particle, the internal indices of the particles a rod or rope joins
+        it to (-1 padding), which never collide."""
+        self.grid_table = self.grid_uid = self.grid_exclude = None
+        if not self.grid_k:
+            return
+        n = self.n
+        to_internal = np.arange(n) if pos is None else np.asarray(pos)
+        uid = np.empty(n, np.int32)
+        uid[to_internal] = np.arange(n)
+        ex = np.zeros((0, 2), np.int64) if exclude is None else np.asarray(exclude, np.int64).reshape(-1, 2)
+        ex = to_internal[ex]
+        deg = np.bincount(ex.reshape(-1), minlength=n)
+        table = np.full((n, max(int(deg.max(initial=0)), 1)), -1, np.int32)
+        fill = np.zeros(n, np.int64)
+        for a, b in ex:
+            table[a, fill[a]], table[b, fill[b]] = b, a
+            fill[a] += 1
+            fill[b] += 1
+        self.grid_table = grid_table_size(n)
+        self.grid_uid, self.grid_exclude = StaticArray(uid), StaticArray(table)
+
+    @property
+    def has_grid(self) -> bool:
+        return self.grid_k > 0
 
     @property
     def n_obstacles(self) -> int:
@@ -110,7 +166,7 @@ class ContactTopology:
     @property
     def k(self) -> int:
         """Number of contact slots (the length of a state's contact impulses)."""
-        return self.n_obstacles * self.n + self.n_pairs
+        return self.n_obstacles * self.n + self.n_pairs + self.n * self.grid_k
 
     def __hash__(self):
         return self._hash
@@ -120,21 +176,42 @@ class ContactTopology:
                                  and self._key == other._key)
 
     def __repr__(self):
-        return (f"ContactTopology({self.n_planes} planes, {self.n_spheres} spheres, {self.n_pairs} pairs in "
-                f"{self.rounds} rounds)")
+        pairs = (f"a neighbour grid of {self.grid_k} per particle" if self.grid_k else
+                 f"{self.n_pairs} pairs in {self.rounds} rounds")
+        return f"ContactTopology({self.n_planes} planes, {self.n_spheres} spheres, {pairs})"
+
+
+def check_max_neighbours(value, collide, dim: int) -> int:
+    """`build`'s `max_neighbours` (None: `DEFAULT_MAX_NEIGHBOURS`): a Python int >= 1, only with
+    ``collide=True`` or ``"grid"``."""
+    if value is None:
+        return DEFAULT_MAX_NEIGHBOURS[dim]
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"build: `max_neighbours` must be a Python int >= 1 (it is static), got {value!r}")
+    if value < 1:
+        raise ValueError(f"build: `max_neighbours` must be >= 1, got {value}")
+    if not ((isinstance(collide, (bool, np.bool_)) and bool(collide)) or (isinstance(collide, str)
+                                                                          and collide == "grid")):
+        raise ValueError("build: `max_neighbours` sets the neighbour grid's capacity and needs collide=True or "
+                         f"collide='grid', got collide={collide!r}")
+    return int(value)
+
+
+def uses_grid(collide, n: int) -> bool:
+    """Whether `collide` asks for the neighbour grid: ``"grid"``, or True above `MAX_ALL_PAIRS_PARTICLES`."""
+    if isinstance(collide, str):
+        if collide != "grid":
+            raise ValueError(f"build: `collide` must be True, False, 'grid' or a list of (i, j) pairs, got {collide!r}")
+        return True
+    return isinstance(collide, (bool, np.bool_)) and bool(collide) and n > MAX_ALL_PAIRS_PARTICLES
 
 
 def contact_pairs(collide, n: int, exclude: np.ndarray) -> np.ndarray:
     """Candidate pairs from `collide`: False/None (none), True (every pair not joined by a constraint in
-    `exclude`, [m, 2]), or a list of (i, j) pairs (checked)."""
-    if collide is None or collide is False:
+    `exclude`, [m, 2]), or a list of (i, j) pairs (checked). A grid (`uses_grid`) has no static pairs."""
+    if collide is None or collide is False or uses_grid(collide, n):
         return np.zeros((0, 2), np.int64)
     if collide is True:
-        if n > MAX_ALL_PAIRS_PARTICLES:
-            raise ValueError(
-                f"build: `collide=True` checks all n (n - 1) / 2 pairs every sweep, which is limited to "
-                f"{MAX_ALL_PAIRS_PARTICLES} particles; this model has {n}. Pass `collide` as a list of candidate "
-                "(i, j) pairs instead")
         a, b = np.triu_indices(n, 1)
         pairs = np.stack([a, b], -1)
         if len(exclude):

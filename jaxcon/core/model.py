@@ -8,7 +8,7 @@ import numpy as np
 
 from jaxcon.core import layout as _layout
 from jaxcon.core.checks import check_real, check_scalar, check_shape, check_values, resolve_dtype
-from jaxcon.core.contact import ContactTopology, contact_pairs
+from jaxcon.core.contact import ContactTopology, check_max_neighbours, contact_pairs, uses_grid
 from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
 from jaxcon.core.topology import Topology, check_colouring, greedy_colouring, parse_pairs as _pairs
 
@@ -136,6 +136,9 @@ class State:
            without contacts (also accepted, as zeros, for one with them). Order: `ContactTopology`.
       contact_t: [k, dim] friction impulses of the last step (N s, world frame, in the contact's tangent plane,
            |contact_t| <= mu contact_n), acting on the contact's second particle (the particle, for obstacles).
+      contact_partners: [n, K] int, for a model with a neighbour grid only (else None): the partner j of each
+           grid slot of the last step (-1: empty), whose impulse is contact_n[Q n + i K + s] (docs/contacts.md).
+           None on a grid model's state: no partners known, the grid contacts are not warm-started.
     """
 
     x: Array
@@ -143,6 +146,7 @@ class State:
     lam: Array
     contact_n: Array = None
     contact_t: Array = None
+    contact_partners: Array = None
 
     def __repr__(self):
         extra = "" if self.contact_n is None else f", contact_n={jnp.shape(self.contact_n)}"
@@ -153,13 +157,18 @@ class State:
 @pytree_dataclass
 class Trajectory:
     """Per-step record of a rollout (after each step): x, v [steps, n, dim]; lam [steps, m]; for models with
-    contacts also contact_n [steps, k] and contact_t [steps, k, dim] (see `State`)."""
+    contacts also contact_n [steps, k] and contact_t [steps, k, dim] (see `State`); for models with a neighbour
+    grid also contact_partners [steps, n, K] (see `State`) and contact_overflow [steps] int: the candidate pairs
+    the grid had no room for, summed over the steps since the previous record (every step's with save_every 1;
+    > 0: contacts may have been missed; raise `max_neighbours`)."""
 
     x: Array
     v: Array
     lam: Array
     contact_n: Array = None
     contact_t: Array = None
+    contact_partners: Array = None
+    contact_overflow: Array = None
 
 
 def check_state(owner: str, model: Model, state: State) -> None:
@@ -191,6 +200,13 @@ def check_state(owner: str, model: Model, state: State) -> None:
         names.append(name)
     for name in names:
         check_values(owner, f"state.{name}", getattr(state, name))
+    p = state.contact_partners
+    if p is not None:
+        if c is None or not c.has_grid:
+            raise ValueError(f"{owner}: `state.contact_partners` is set but the model has no neighbour grid")
+        if not hasattr(p, "dtype") or not jnp.issubdtype(jnp.result_type(p), jnp.integer):
+            raise TypeError(f"{owner}: `state.contact_partners` must be an integer array")
+        check_shape(owner, "state.contact_partners", p, (t.n, c.grid_k))
 
 
 def _fixed_mask(fixed, n: int) -> np.ndarray:
@@ -237,6 +253,7 @@ def build(
     dtype=None,
     radius=None,
     collide=False,
+    max_neighbours: Optional[int] = None,
     planes: Optional[Sequence] = None,
     spheres: Optional[Sequence] = None,
     friction=None,
@@ -273,7 +290,11 @@ def build(
 
     Contacts (docs/contacts.md; values are differentiable leaves, counts static; then rods are optional):
       radius: particle radius (m), a scalar or [n]; default 0 (points). Particles in `collide` pairs need > 0.
-      collide: True (every pair of particles no rod or rope joins), or a list of candidate (i, j) pairs.
+      collide: True (every pair of particles no rod or rope joins), or a list of candidate (i, j) pairs, or
+        "grid". True solves all pairs up to 256 particles and uses a neighbour grid above; "grid" always uses
+        the grid (docs/contacts.md). Grid models step with PGS or Jacobi (substeps=1).
+      max_neighbours: the grid's capacity, partners kept per particle (static int >= 1; default 8 in 2-D,
+        16 in 3-D). Candidates beyond it are counted in `Trajectory.contact_overflow` and `jc.diagnose`.
       planes: [(normal, offset), ...]: particles stay in normal . x >= offset + radius (normal normalised).
       spheres: [(centre, R), ...]: static spheres of radius R > 0 every particle stays outside of.
       friction, restitution: Coulomb mu >= 0 and e in [0, 1] of every contact (default 0 and 0).
@@ -301,7 +322,10 @@ def build(
     is_rope = np.concatenate([np.zeros(len(rod_pairs), bool), np.ones(len(rope_pairs), bool)])
     m = len(pairs)
     contact_pairs_ = contact_pairs(collide, n, pairs)
-    has_contacts = bool(planes) or bool(spheres) or len(contact_pairs_) > 0
+    grid_k = check_max_neighbours(max_neighbours, collide, dim) if uses_grid(collide, n) else 0
+    if max_neighbours is not None and not grid_k:
+        check_max_neighbours(max_neighbours, collide, dim)
+    has_contacts = bool(planes) or bool(spheres) or len(contact_pairs_) > 0 or grid_k > 0
     if m == 0 and not has_contacts:
         raise ValueError("build: the model needs at least one constraint (`rods` or `ropes`) or contact "
                          "(`planes`, `spheres` or `collide`)")
@@ -321,10 +345,11 @@ def build(
     contact = dict(radius=radius, planes=planes, spheres=spheres, friction=friction, restitution=restitution,
                    threshold=restitution_threshold)
     return _with_contacts(Model(inv_mass, rest, g, topo), State(x, v, jnp.zeros(m, dtype)), contact_pairs_,
-                          has_contacts, **contact)
+                          has_contacts, grid=(grid_k, pairs), **contact)
 
 
-def _with_contacts(model, state, pairs, has_contacts, radius, planes, spheres, friction, restitution, threshold):
+def _with_contacts(model, state, pairs, has_contacts, radius, planes, spheres, friction, restitution, threshold,
+                   grid=(0, None)):
     """`build`'s (model, state) with its contact leaves and topology, and zero contact impulses."""
     if not has_contacts:
         given = [k for k, val in (("radius", radius), ("friction", friction), ("restitution", restitution),
@@ -334,13 +359,20 @@ def _with_contacts(model, state, pairs, has_contacts, radius, planes, spheres, f
                              "`spheres` or `collide`")
         return model, state
     t, dtype = model.topology, state.x.dtype
-    leaves = _contact_leaves(t.n, t.dim, dtype, radius, planes, spheres, friction, restitution, threshold, pairs)
-    ct = ContactTopology(t.n, len(leaves["plane_offset"]), len(leaves["sphere_radius"]), pairs, t.pos)
+    grid_k, joined = grid
+    leaves = _contact_leaves(t.n, t.dim, dtype, radius, planes, spheres, friction, restitution, threshold, pairs,
+                             grid_k > 0)
+    ct = ContactTopology(t.n, len(leaves["plane_offset"]), len(leaves["sphere_radius"]), pairs, t.pos, grid_k,
+                         joined)
     model = model.replace(contact=ct, **leaves)
-    return model, state.replace(contact_n=jnp.zeros(ct.k, dtype), contact_t=jnp.zeros((ct.k, t.dim), dtype))
+    state = state.replace(contact_n=jnp.zeros(ct.k, dtype), contact_t=jnp.zeros((ct.k, t.dim), dtype))
+    if grid_k:
+        state = state.replace(contact_partners=jnp.full((t.n, grid_k), -1, jnp.int32))
+    return model, state
 
 
-def _contact_leaves(n, dim, dtype, radius, planes, spheres, friction, restitution, threshold, pairs) -> dict:
+def _contact_leaves(n, dim, dtype, radius, planes, spheres, friction, restitution, threshold, pairs,
+                    grid=False) -> dict:
     """The contact leaves of `build`, checked where known and cast to `dtype`."""
     def scalar(name, value, default, hi=None):
         if value is None:
@@ -365,6 +397,9 @@ def _contact_leaves(n, dim, dtype, radius, planes, spheres, friction, restitutio
             k = int(np.argmax(both <= 0))
             raise ValueError(f"build: particles {tuple(pairs[k].tolist())} may collide (`collide`) but both have "
                              "radius 0; give them a `radius` > 0")
+    if grid and rc is not None and np.sum(np.asarray(rc) <= 0) > 1:
+        raise ValueError("build: with the neighbour grid every pair of particles may collide, so at most one "
+                         "particle may have `radius` 0; give them a `radius` > 0")
     normals, offsets = _obstacles("planes", planes, dim, dtype, "(normal, offset)")
     centres, radii = _obstacles("spheres", spheres, dim, dtype, "(centre, R)")
     check_values("build", "spheres' R", radii, positive=True)

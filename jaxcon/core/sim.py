@@ -11,6 +11,7 @@ from jax import lax
 
 from jaxcon.core import layout as L
 from jaxcon.core.checks import check_int, check_real
+from jaxcon.core.contact import MAX_ALL_PAIRS_PARTICLES
 from jaxcon.core.model import Model, State, Trajectory, check_state
 from jaxcon.core.pytree import concrete
 from jaxcon.core.system import Solver, System
@@ -30,6 +31,17 @@ def _check_call(owner, model, state, solver, dt, steps=None):
         raise ValueError(
             f"{owner}: {type(solver).__name__} does not support contacts, and the model has some ({model.contact!r}); "
             "use jc.PGS (sequential impulses) for models with `planes`, `spheres` or `collide`")
+    if model.contact is not None and model.contact.has_grid:
+        if not solver.supports_grid:
+            raise ValueError(
+                f"{owner}: {type(solver).__name__} cannot step a model with a neighbour grid (built with "
+                f"collide='grid', or collide=True above {MAX_ALL_PAIRS_PARTICLES} particles); use jc.PGS or "
+                "jc.Jacobi, or pass `collide` as a list of candidate pairs")
+        if getattr(solver, "substeps", 1) != 1:
+            raise ValueError(
+                f"{owner}: a model with a neighbour grid steps with substeps=1 (its contact slots change from one "
+                f"substep to the next, so their impulses cannot be summed over a step); got "
+                f"{type(solver).__name__}(substeps={solver.substeps}): use a smaller dt instead")
     warn = getattr(solver, "_check_stability", None)
     if warn is not None:
         warn(owner, model, dt)
@@ -79,18 +91,22 @@ def _enter(model, state):
             ctan = (jnp.zeros(cn.shape + (t.dim,), dtype) if state.contact_t is None
                     else jnp.asarray(state.contact_t, dtype))
             imp = C.contacts_in(t, ct, cn, ctan)
+        if ct.has_grid:
+            imp = imp._replace(partners=C.partners_in(ct, state.contact_partners))
         lam = (lam, imp)
     return sys, x, v, lam
 
 
 def _impulses_out(model, lam, like):
-    """(lam [..., m], contact_n, contact_t) in user order from the internal carry (contacts None without)."""
+    """(lam [..., m], contact_n, contact_t, contact_partners) in user order from the internal carry (contacts
+    None without, partners None without a grid)."""
     t = model.topology
     if model.contact is None:
-        return L.constraints_out(t, lam, like), None, None
+        return L.constraints_out(t, lam, like), None, None, None
     blocks, imp = lam
     cn, ctan = C.contacts_out(t, model.contact, imp)
-    return L.constraints_out(t, blocks, like), cn, ctan
+    partners = C.partners_out(model.contact, imp.partners) if model.contact.has_grid else None
+    return L.constraints_out(t, blocks, like), cn, ctan, partners
 
 
 def _record_sys(sys, lam, like):
@@ -99,7 +115,9 @@ def _record_sys(sys, lam, like):
     if sys.contact is None:
         return L.constraints_concat(t, lam, like)
     blocks, imp = lam
-    return (L.constraints_concat(t, blocks, like),) + C.contacts_out(t, sys.contact.ct, imp)
+    ct = sys.contact.ct
+    grid = (C.partners_out(ct, imp.partners), imp.overflow) if ct.has_grid else (None, None)
+    return (L.constraints_concat(t, blocks, like),) + C.contacts_out(t, ct, imp) + grid
 
 
 def _state_out(model, x, v, lam):
@@ -135,9 +153,21 @@ def _time_loop(sys, solver, carry, dt, steps, save_every, checkpoint=None, remat
     def one(_, carry):
         return step(carry)
 
+    grid = sys.contact is not None and sys.contact.ct.has_grid
+
+    def one_counting(_, carry):
+        """A step that also sums a grid's overflow over the steps between two records."""
+        carry, total = carry
+        carry = step(carry)
+        return carry, total + carry[2][1].overflow
+
     def body(carry, _):
         if save_every == 1:
             carry = one(0, carry)
+        elif grid:
+            carry, total = lax.fori_loop(0, save_every, one_counting, (carry, jnp.zeros((), jnp.int32)))
+            blocks, imp = carry[2]
+            carry = carry[:2] + ((blocks, imp._replace(overflow=total)),)
         else:
             carry = lax.fori_loop(0, save_every, one, carry)
         x, v, lam = carry
@@ -181,9 +211,9 @@ def _rollout_jit(model, state, solver, dt, steps, save_every, checkpoint=None, r
     final = _state_out(model, x, v, lam)
     if model.contact is None:
         return final, Trajectory(L.particles_out(t, xs), L.particles_out(t, vs), L.constraints_unpermute(t, lams))
-    lams, cns, cts = lams
+    lams, cns, cts, partners, overflow = lams
     return final, Trajectory(L.particles_out(t, xs), L.particles_out(t, vs), L.constraints_unpermute(t, lams),
-                             cns, cts)
+                             cns, cts, partners, overflow)
 
 
 def available_memory() -> tuple[int, str] | None:

@@ -145,14 +145,21 @@ def contact_begin(sys, x, v, lam_ws, beta, h, split: bool, warm: bool, factor=1.
     v_free = v
     fr = frames(sys, x)
     bias = velocity_bias(topo, fr, jnp.zeros((), x.dtype) if split else beta, h)
-    obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h)
+    partners = overflow = None
+    if cs.ct.has_grid:          # the grid model's candidate pairs of this step, from the velocities after gravity
+        partners, overflow = contact.neighbours(cs, x, v, h)
+    obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h, partners)
     if not warm:
-        return (v_free, v, fr, bias, obs, pairs, tuple(jnp.zeros_like(f.C) for f in fr),
-                contact.zero_impulses(topo, cs.ct, x.dtype))
+        imp = contact.zero_impulses(topo, cs.ct, x.dtype)
+        if partners is not None:
+            imp = imp._replace(partners=partners, overflow=overflow)
+        return v_free, v, fr, bias, obs, pairs, tuple(jnp.zeros_like(f.C) for f in fr), imp
     if not gradient:
         imp_ws = lax.stop_gradient(imp_ws)
     v, lam = warm_start(sys, v, fr, lam_ws, factor, gradient)
     v, imp = contact.warm_start(cs, sys.w, v, obs, pairs, imp_ws, factor)
+    if partners is not None:
+        imp = imp._replace(partners=partners, overflow=overflow)
     return v_free, v, fr, bias, obs, pairs, lam, imp
 
 
@@ -192,4 +199,4 @@ def contact_end(sys, x, v, v_free, obs, pairs, imp, h, v_pseudo=None, passes=1):
     cs = sys.contact
     dx = -contact.impact_times(cs, obs, pairs, imp, x.shape) * (v - v_free)
     move = v if v_pseudo is None else v + v_pseudo
-    return contact.project_overlaps(cs, sys.w, x + h * move + dx, passes)
+    return contact.project_overlaps(cs, sys.w, x + h * move + dx, passes, pairs)

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 
 from jaxcon.core import layout as L
 from jaxcon.solvers.common import clamp_ropes
-from jaxcon.solvers.contact import Impulses, Rows, _pair_total, _solve_row
+from jaxcon.solvers.contact import Impulses, Rows, _pair_total, _solve_row, pair_index
 
 
 def rod_degree(topo, fr, like):
@@ -50,12 +50,12 @@ def contact_counts(cs, v, obs: Rows, pairs: Rows, imp: Impulses, base):
         act = ((imp.obs_n > 0) | (imp.obs_n + (obs.target - vn) * obs.k > 0)) & (obs.k > 0)
         c = c + jnp.sum(act.astype(c.dtype), 0)[None]
     if pairs is not None:
-        ia, ja = ct.i.array, ct.j.array
+        ia, ja = pair_index(ct, pairs)
         vf = v.reshape(v.shape[0], -1)
-        vn = jnp.sum((vf[:, ja] - vf[:, ia]) * pairs.n, 0)
+        vn = jnp.sum((vf[:, ja] - vf[:, ia]).reshape(pairs.n.shape) * pairs.n, 0)
         act = ((imp.pair_n > 0) | (imp.pair_n + (pairs.target - vn) * pairs.k > 0)) & (pairs.k > 0)
         act = act.astype(c.dtype).reshape(-1)
-        flat = c.reshape(-1).at[ia.reshape(-1)].add(act).at[ja.reshape(-1)].add(act)
+        flat = c.reshape(-1).at[ia].add(act).at[ja].add(act)
         c = flat.reshape(c.shape)
     return c
 
@@ -86,7 +86,7 @@ def contact_pass(cs, w, v, obs: Rows, pairs: Rows, imp: Impulses, count, relax):
     (dv, imp). Effective masses as in `rod_pass` (an obstacle has no inverse mass: 1 / (c_i w_i))."""
     ct, mu = cs.ct, cs.friction
     dv = jnp.zeros_like(v)
-    on, ot, pn, pt = imp
+    on, ot, pn, pt = imp[:4]
     if obs is not None:
         f = _obstacle_frame(obs)
         k = relax * obs.k if count is None else L.safe_reciprocal(count * obs.winv) * (obs.k > 0).astype(v.dtype)
@@ -95,16 +95,19 @@ def contact_pass(cs, w, v, obs: Rows, pairs: Rows, imp: Impulses, count, relax):
         ot = jnp.moveaxis(ot, 0, 1)
         dv = dv + w * jnp.sum(P, 1)
     if pairs is not None:
-        ia, ja = ct.i.array, ct.j.array
+        index = pair_index(ct, pairs)
+        ia, ja = index
         vf = v.reshape(v.shape[0], -1)
+        shape = pairs.k.shape
         if count is None:
             k = relax * pairs.k
         else:
             cf, wf = count.reshape(-1), w.reshape(-1)
-            k = L.safe_reciprocal(cf[ia] * wf[ia] + cf[ja] * wf[ja]) * (pairs.k > 0).astype(v.dtype)
-        P, pn, pt = _solve_row(vf[:, ja] - vf[:, ia], pairs._replace(k=k), mu, pn, pt)
-        dv = dv + _pair_total(ct, w, P, sign_i=-1.0).reshape(v.shape)
-    return dv, Impulses(on, ot, pn, pt)
+            k = L.safe_reciprocal(cf[ia] * wf[ia] + cf[ja] * wf[ja]).reshape(shape) * (pairs.k > 0).astype(v.dtype)
+        vrel = (vf[:, ja] - vf[:, ia]).reshape(pairs.n.shape)
+        P, pn, pt = _solve_row(vrel, pairs._replace(k=k), mu, pn, pt)
+        dv = dv + _pair_total(ct, w, P, -1.0, index).reshape(v.shape)
+    return dv, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
 
 def iteration(sys, fr, bias, obs: Rows, pairs: Rows, relax):

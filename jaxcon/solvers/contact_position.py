@@ -137,5 +137,5 @@ def velocity_pass(cs: ContactSystem, w, p, v_before, v, imp: Impulses, h):
     """Restitution and dynamic friction (module docstring) on v = (p - x) / h. `imp` holds the substep's
     position multipliers (kg m). Returns (v, the substep's contact impulses in N s)."""
     obs, pairs = velocity_rows(cs, w, p, v_before, imp)
-    start = Impulses(*(a / h for a in imp))
+    start = Impulses(*(a / h for a in imp[:4]))
     return contact.sweep(cs, w, v, obs, pairs, start)

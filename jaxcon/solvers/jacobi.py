@@ -84,6 +84,7 @@ class Jacobi(Solver):
             check_scalar("Jacobi", "relaxation", self.relaxation, 0.0, 2.0, positive=True)
 
     supports_contacts = True
+    supports_grid = True
 
     def _step(self, sys, x, v, lam, dt):
         if sys.contact is not None:

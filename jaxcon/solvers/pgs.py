@@ -96,6 +96,7 @@ class PGS(Solver):
         check_scalar("PGS", "warm_start_factor", self.warm_start_factor, 0.0, 1.0)
 
     supports_contacts = True
+    supports_grid = True
 
     def _substep(self, sys, x, v, lam_ws, h):
         if sys.contact is not None:

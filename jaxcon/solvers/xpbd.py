@@ -146,7 +146,7 @@ class XPBD(Solver):
             p, mu, imp = lax.fori_loop(0, self.iterations, sweep, (x + h * v_before, zero_b, zero_c))
             v, imp = contact_position.velocity_pass(cs, sys.w, p, v_before, (p - x) / h, imp, h)
             return (p, v, tuple(t + m / h for t, m in zip(total_b, mu)),
-                    contact.Impulses(*(t + a for t, a in zip(total_c, imp))))
+                    contact.Impulses(*(t + a for t, a in zip(total_c[:4], imp[:4]))))
 
         x, v, total_b, total_c = lax.fori_loop(0, self.substeps, substep, (x, v, zero_b, zero_c))
         return x, v, (total_b, total_c)

@@ -1,0 +1,155 @@
+"""The neighbour grid for particle-particle contacts (collide="grid", or collide=True above MAX_ALL_PAIRS_PARTICLES (256))."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxcon as jc
+from jaxcon.core.contact import MAX_ALL_PAIRS_PARTICLES
+
+jax.config.update("jax_enable_x64", True)
+
+R = 0.05
+BOX = [([0.0, 1.0], 0.0), ([1.0, 0.0], 0.0), ([-1.0, 0.0], -0.6)]       # floor and two walls, 0.6 m apart
+
+
+def _discs(rows, cols, jitter=0.0, seed=0, gap=0.002):
+    rng = np.random.default_rng(seed)
+    k = np.arange(rows * cols)
+    x = np.stack([(k % cols) * (2 * R + gap) + R + 0.01, (k // cols) * (2 * R + gap) + R + 0.01], -1)
+    return x + jitter * rng.uniform(-1, 1, x.shape)
+
+
+def _pile(collide, **kw):
+    """18 discs in 4 staggered rows, slightly apart, falling onto the floor of the box."""
+    pts = [[R + 0.05 + c * 2.02 * R + (r % 2) * R, R + 0.002 + 0.12 * r]
+           for r in range(4) for c in range(5 - r % 2)]
+    x = np.asarray(pts) + np.random.default_rng(0).uniform(-0.003, 0.003, (len(pts), 2))
+    return jc.build(x, np.ones(len(x)), radius=R, collide=collide, planes=BOX, friction=0.3, **kw)
+
+
+@pytest.mark.parametrize("collide", [True, "grid"])
+def test_pile_settles_without_overlap(collide):
+    model, state = _pile(collide)
+    final, traj = jc.rollout(model, state, jc.PGS(10), 1 / 120, 300)
+    d = jc.diagnose(model, traj, state)
+    assert not bool(d.diverged)
+    assert float(jnp.max(d.penetration)) < 0.01 * 2 * R
+    assert float(jnp.max(jnp.abs(final.v))) < 0.02
+    if collide == "grid":
+        assert traj.contact_n.shape == (300, 3 * 18 + 18 * 8)
+        assert traj.contact_partners.shape == (300, 18, 8)
+        assert int(jnp.max(traj.contact_overflow)) == 0 and not bool(d.overflowed)
+
+
+@pytest.mark.parametrize("solver", [jc.PGS(10), jc.Jacobi(20)])
+def test_energy_never_increases_without_gravity(solver):
+    x = _discs(4, 4, gap=0.03)
+    rng = np.random.default_rng(1)
+    v = rng.normal(0, 1.0, x.shape)
+    box = BOX + [([0.0, -1.0], -0.6)]
+    model, state = jc.build(x, np.ones(len(x)), velocities=v, gravity=0.0, radius=R, collide="grid", planes=box,
+                            restitution=0.8)
+    _, traj = jc.rollout(model, state, solver, 1 / 120, 150)
+    ke = np.concatenate([[float(jc.kinetic_energy(model, state.v))], np.asarray(jc.kinetic_energy(model, traj.v))])
+    # PGS scales restitution back so that no impulse phase gains energy; what is left is Baumgarte push-out of
+    # overlaps (6e-9 of KE_0 in one step here; all pairs, collide=True: 2e-7). Jacobi has no restitution guard
+    # and gains up to 1e-5 of KE_0 in a step here, as it does with all pairs (3e-6).
+    tol = 1e-6 if isinstance(solver, jc.PGS) else 1e-4
+    assert np.all(np.diff(ke) <= tol * ke[0])
+    assert ke[-1] < ke[0]           # collisions happened and were inelastic
+    assert float(jnp.max(jc.diagnose(model, traj, state).penetration)) < 0.01 * 2 * R
+
+
+def test_head_on_elastic_collision_exchanges_velocities():
+    model, state = jc.build([[0.0, 0.0], [1.0, 0.03]], [1.0, 1.0], velocities=[[2.0, 0.0], [-1.0, 0.0]], gravity=0.0,
+                            radius=0.1, collide="grid", restitution=1.0, restitution_threshold=0.0)
+    state = state.replace(x=jnp.array([[0.0, 0.0], [1.0, 0.0]]))
+    final, traj = jc.rollout(model, state, jc.PGS(10), 0.01, 60)
+    np.testing.assert_allclose(final.v, [[-1.0, 0.0], [2.0, 0.0]], atol=1e-9)
+    # the contact's impulse (momentum exchanged, 3 N s) is reported in particle 0's slot naming particle 1
+    hit = int(np.argmax(np.asarray(traj.contact_n).max(-1)))
+    slot = int(np.argmax(np.asarray(traj.contact_partners[hit, 0]) == 1))
+    assert int(traj.contact_partners[hit, 0, slot]) == 1
+    np.testing.assert_allclose(float(traj.contact_n[hit, slot]), 3.0, rtol=1e-9)
+
+
+def test_overflow_is_reported():
+    x = _discs(4, 4, gap=0.0)
+    for k, overflows in ((1, True), (8, False)):
+        model, state = jc.build(x, np.ones(len(x)), radius=R, collide="grid", gravity=0.0, max_neighbours=k)
+        _, traj = jc.rollout(model, state, jc.PGS(2), 1 / 60, 2)
+        if overflows:
+            with pytest.warns(UserWarning, match="max_neighbours"):
+                d = jc.diagnose(model, traj, state)
+            assert bool(d.overflowed) and int(jnp.max(d.overflow)) > 0
+            # with save_every, a record holds the overflow of every step since the previous one
+            _, every2 = jc.rollout(model, state, jc.PGS(2), 1 / 60, 2, save_every=2)
+            assert int(every2.contact_overflow[0]) == int(jnp.sum(traj.contact_overflow))
+        else:
+            d = jc.diagnose(model, traj, state)
+            assert not bool(d.overflowed) and int(jnp.max(d.overflow)) == 0
+
+
+def test_collide_true_above_the_all_pairs_limit_uses_the_grid():
+    n = MAX_ALL_PAIRS_PARTICLES + 52
+    cols = 50
+    k = np.arange(n)
+    x = np.stack([(k % cols) * 0.021, (k // cols) * 0.021 + 0.011], -1)        # discs 1 mm apart
+    v = np.random.default_rng(2).normal(0, 0.1, x.shape)
+    model, state = jc.build(x, np.ones(n), velocities=v, gravity=0.0, radius=0.01, collide=True,
+                            planes=[([0.0, 1.0], 0.0)])
+    assert model.contact.has_grid and model.contact.n_pairs == 0
+    final, traj = jax.jit(lambda s: jc.rollout(model, s, jc.PGS(4), 1 / 60, 5))(state)
+    assert np.all(np.isfinite(np.asarray(final.x)))
+    assert int(jnp.max(traj.contact_overflow)) == 0
+    assert int(jnp.sum(final.contact_partners >= 0)) > n         # the lattice's neighbours were found
+    assert float(jnp.max(jc.penetration(model, final.x, final.contact_partners))) < 0.02 * 0.02
+
+
+def test_candidates_skip_joined_pairs_and_list_each_pair_once():
+    from jaxcon.core import layout
+    from jaxcon.core.system import System
+    from jaxcon.solvers.contact import neighbours, partners_out
+
+    # in a row, each touching the next: 2, 0, 1, 4, with 0-1 joined by a rod; 3 far away
+    x = np.array([[0.1, 0.0], [0.2, 0.0], [0.0, 0.0], [5.0, 0.0], [0.3, 0.0]])
+    model, _ = jc.build(x, np.ones(5), rods=[(0, 1)], radius=0.05, collide="grid", max_neighbours=2)
+    sys = System.from_model(model, jnp.float64)
+    t = model.topology
+    xi = layout.particles_in(t, jnp.asarray(x))
+    partners, overflow = neighbours(sys.contact, xi, jnp.zeros_like(xi), 0.01)
+    partners = np.asarray(partners_out(model.contact, partners))
+    got = {(i, int(j)) for i in range(5) for j in partners[i] if j >= 0}
+    assert got == {(0, 2), (1, 4)} and int(overflow) == 0
+
+
+def test_bad_max_neighbours_and_refusing_solvers():
+    x = _discs(2, 2)
+    for bad in (0, -3, 2.5, True, "8"):
+        with pytest.raises(ValueError, match="max_neighbours"):
+            jc.build(x, np.ones(4), radius=R, collide="grid", max_neighbours=bad)
+    with pytest.raises(ValueError, match="max_neighbours"):
+        jc.build(x, np.ones(4), radius=R, collide=[(0, 1)], max_neighbours=4)
+    with pytest.raises(ValueError, match="collide"):
+        jc.build(x, np.ones(4), radius=R, collide="grids")
+    model, state = jc.build(x, np.ones(4), radius=R, collide="grid", planes=BOX)
+    for solver in (jc.XPBD(), jc.SoftStep(), jc.Penalty()):
+        with pytest.raises(ValueError, match="neighbour grid"):
+            jc.rollout(model, state, solver, 0.01, 2)
+    with pytest.raises(ValueError, match="substeps"):
+        jc.rollout(model, state, jc.PGS(substeps=2), 0.01, 2)
+
+
+def test_gradient_through_a_grid_rollout_is_finite():
+    x = _discs(2, 2, gap=0.01)
+
+    def loss(v0, radius):
+        model, state = jc.build(x, np.ones(4), velocities=jnp.zeros((4, 2)).at[0].set(v0), gravity=0.0,
+                                radius=radius, collide="grid", restitution=0.5, friction=0.2)
+        final, _ = jc.rollout(model, state, jc.PGS(4), 0.01, 20)
+        return jnp.sum(final.x[:, 0] * jnp.arange(4.0))
+
+    g = jax.grad(loss, argnums=(0, 1))(jnp.array([1.5, 0.8]), R)
+    assert all(np.all(np.isfinite(np.asarray(a))) for a in g)
+    assert float(jnp.abs(g[0]).max()) > 0
