@@ -13,7 +13,9 @@ import time
 import jax
 import numpy as np
 
-import jaxcon as jc
+from jaxcon.core.model import build
+from jaxcon.core.sim import rollout
+from jaxcon.solvers.pgs import PGS
 
 
 def scene(n: int, collide):
@@ -21,13 +23,13 @@ def scene(n: int, collide):
     cols = int(np.ceil(np.sqrt(n)))
     k = np.arange(n)
     x = np.stack([(k % cols) * 2.1 * r, (k // cols) * 2.1 * r + r + 0.001], -1)
-    return jc.build(x, np.ones(n), radius=r, collide=collide, planes=[([0.0, 1.0], 0.0)])
+    return build(x, np.ones(n), radius=r, collide=collide, planes=[([0.0, 1.0], 0.0)])
 
 
 def per_step(n: int, collide, steps: int) -> float:
     model, state = scene(n, collide)
-    solver = jc.PGS(10)
-    run = jax.jit(lambda s: jc.rollout(model, s, solver, 1 / 60, steps)[0].x)
+    solver = PGS(10)
+    run = jax.jit(lambda s: rollout(model, s, solver, 1 / 60, steps)[0].x)
     run(state).block_until_ready()
     best = np.inf
     for _ in range(3):

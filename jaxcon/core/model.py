@@ -321,10 +321,7 @@ def build(
     pairs = np.concatenate([rod_pairs, rope_pairs], 0)
     is_rope = np.concatenate([np.zeros(len(rod_pairs), bool), np.ones(len(rope_pairs), bool)])
     m = len(pairs)
-    contact_pairs_ = contact_pairs(collide, n, pairs)
-    grid_k = check_max_neighbours(max_neighbours, collide, dim) if uses_grid(collide, n) else 0
-    if max_neighbours is not None and not grid_k:
-        check_max_neighbours(max_neighbours, collide, dim)
+    contact_pairs_, grid_k = _collisions(collide, max_neighbours, n, dim, pairs)
     has_contacts = bool(planes) or bool(spheres) or len(contact_pairs_) > 0 or grid_k > 0
     if m == 0 and not has_contacts:
         raise ValueError("build: the model needs at least one constraint (`rods` or `ropes`) or contact "
@@ -332,20 +329,32 @@ def build(
     i, j = pairs[:, 0], pairs[:, 1]
 
     rest = _rest_lengths(rest_lengths, positions, x, i, j, dtype)
-    if velocities is None:
-        v = jnp.zeros_like(x)
-    else:
-        check_real("build", "velocities", velocities)
-        check_shape("build", "velocities", velocities, (n, dim))
-        check_values("build", "velocities", velocities)
-        v = jnp.asarray(velocities).astype(dtype)
-
+    v = _velocities(velocities, x)
     g = _gravity("build", gravity, dim, dtype)
     topo = Topology(n, dim, i, j, is_rope, _colouring(colouring, i, j, n), _view(grid_shape, n))
     contact = dict(radius=radius, planes=planes, spheres=spheres, friction=friction, restitution=restitution,
                    threshold=restitution_threshold)
     return _with_contacts(Model(inv_mass, rest, g, topo), State(x, v, jnp.zeros(m, dtype)), contact_pairs_,
                           has_contacts, grid=(grid_k, pairs), **contact)
+
+
+def _collisions(collide, max_neighbours, n, dim, joined):
+    """`build`'s particle-particle contacts: (static candidate pairs [k, 2], neighbour-grid capacity or 0)."""
+    pairs = contact_pairs(collide, n, joined)
+    grid_k = check_max_neighbours(max_neighbours, collide, dim) if uses_grid(collide, n) else 0
+    if max_neighbours is not None and not grid_k:
+        check_max_neighbours(max_neighbours, collide, dim)
+    return pairs, grid_k
+
+
+def _velocities(velocities, x):
+    """`build`'s initial velocities, checked, in the dtype of the positions x [n, dim] (zero when None)."""
+    if velocities is None:
+        return jnp.zeros_like(x)
+    check_real("build", "velocities", velocities)
+    check_shape("build", "velocities", velocities, x.shape)
+    check_values("build", "velocities", velocities)
+    return jnp.asarray(velocities).astype(x.dtype)
 
 
 def _with_contacts(model, state, pairs, has_contacts, radius, planes, spheres, friction, restitution, threshold,
