@@ -242,7 +242,7 @@ NB04 = [
            "first order in dt."),
     ("code", '''e, h0, r = 0.8, 0.9, 0.1
 fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-for dt in ((1 / 500, 1 / 2000) if SMALL else (1 / 250, 1 / 1000, 1 / 4000)):
+for dt in ((1 / 250, 1 / 1000) if SMALL else (1 / 250, 1 / 1000, 1 / 4000)):
     model, state = jc.build(np.array([[0.0, h0 + r]]), 1.0, radius=r, planes=[((0.0, 1.0), 0.0)],
                             restitution=e, restitution_threshold=0.01)
     steps = int(2.5 / dt)
@@ -266,7 +266,7 @@ plt.tight_layout()'''),
            "fraction of its radius (the issue's bound is 1%)."),
     ("code", '''n = 8 if SMALL else 16
 model, state = jc.scenes.drape(n=n)
-dt, steps = 1 / 240, (240 if SMALL else 480)
+dt, steps = 1 / 240, (120 if SMALL else 480)
 t0 = time.perf_counter()
 _, traj = jc.rollout(model, state, jc.PGS(10), dt, steps)
 print(f"{model}: {steps} steps in {time.perf_counter() - t0:.1f} s (compile included)")
@@ -339,7 +339,7 @@ v0 = jnp.array([3.0, 0.0])
 opt_state = opt.init(v0)
 history, best = [], (np.inf, v0)
 t0 = time.perf_counter()
-for it in range(40 if SMALL else 150):
+for it in range(20 if SMALL else 150):
     loss, g = loss_and_grad(v0)
     history.append(float(loss))
     best = min(best, (float(loss), v0), key=lambda b: b[0])

@@ -40,7 +40,9 @@ def test_batched_rollout_equals_vmap_of_rollout(solver):
             continue
         states = _states(state, 5)
         ref = jax.vmap(lambda s: jc.rollout(model, s, solver, 1 / 240, 12, save_every=3))(states)
-        for chunk in (None, 2):
+        # chunking splits the batch before any solver sees it: one solver checks it (chunks of 2, 2 and 1)
+        chunks = (None, 2) if solver is SOLVERS[0] else (None,)
+        for chunk in chunks:
             got = jc.batched_rollout(model, states, solver, 1 / 240, 12, save_every=3, chunk=chunk)
             # XPBD and Penalty reassociate a sum in the batch-minor layout: equal to rounding. Direct (batched with
             # vmap) solves the over-constrained cloth's regularised, ill-conditioned system (condition ~1e8) with a
