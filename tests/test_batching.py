@@ -38,6 +38,8 @@ def test_batched_rollout_equals_vmap_of_rollout(solver):
     for name, (model, state) in _scenes():
         if isinstance(solver, jc.Direct) and model.topology.has_ropes:
             continue
+        if name == "rope_chain" and not isinstance(solver, jc.PGS):    # the graph has a rope for the others
+            continue
         states = _states(state, 5)
         ref = jax.vmap(lambda s: jc.rollout(model, s, solver, 1 / 240, 12, save_every=3))(states)
         # chunking splits the batch before any solver sees it: one solver checks it (chunks of 2, 2 and 1)

@@ -47,15 +47,16 @@ S, D = "survives", "diverges"
 # (solver, case) -> (D,) or (S, max overlap / size, max rod violation, max energy gain[, max momentum change
 # before the first cushion (N s), max one-step kinetic energy increase / KE_0]). Bounds: measured with a margin.
 EXPECT = {
-    # PGS(10) at dt 1/60: the 100:1 column sinks to 76% of a radius (ten sweeps do not carry the heavy ball's
+    # PGS(10) at dt 1/60: the 100:1 column sinks to 53% of a radius (ten sweeps do not carry the heavy ball's
     # weight through two light ones) and the Baumgarte push-out gains energy; the break's first step leaves a
-    # 4.3% overlap inside the rack (the cue ball's impulse crosses five rows; PGS(20) leaves 0.15%); the free
-    # cloth stretches its rods past 100% as it lands. Split impulses keep the cloth's rods under 100%.
+    # 0.42% overlap inside the rack (the cue ball's impulse crosses five rows; the repeated position pass
+    # removes most of what the sweeps leave); the free cloth stretches its rods past 100% as it lands. Split
+    # impulses keep the cloth's rods under 100%.
     ("PGS", "heavy_on_light_100"): (S, 1.5, 0.0, 1.0),
-    ("PGS", "break_16_dt_1_60"): (S, 0.09, 0.0, 1e-9, 1e-12, 1e-12),
+    ("PGS", "break_16_dt_1_60"): (S, 0.01, 0.0, 1e-9, 1e-12, 1e-12),
     ("PGS", "drape_from_1m"): (D,),
     ("PGS-split", "heavy_on_light_100"): (S, 1.5, 0.0, 1.0),
-    ("PGS-split", "break_16_dt_1_60"): (S, 0.09, 0.0, 1e-9, 1e-12, 1e-12),
+    ("PGS-split", "break_16_dt_1_60"): (S, 0.01, 0.0, 1e-9, 1e-12, 1e-12),
     ("PGS-split", "drape_from_1m"): (S, 0.01, 0.95, 1e-3),
     # XPBD(10 substeps): position projection holds the 100:1 column to 5% of a radius and the break without any
     # overlap; Penalty(1e5 N/m, 20 substeps) sinks 18% in the column, its break gains 0.7% kinetic energy in a
@@ -67,11 +68,11 @@ EXPECT = {
     ("Penalty", "break_16_dt_1_60"): (S, 0.04, 0.0, 1e-9, 1e-12, 0.015),
     ("Penalty", "drape_from_1m"): (D,),
     # Jacobi(20): the 100:1 column passes a ball through another (flagged); in the break 20 Jacobi iterations
-    # leave 22% overlap and the simultaneous restitution targets gain 0.8% kinetic energy in one step; the
-    # cloth stretches past 100%. SoftStep(16 substeps): soft contacts sag (56% of a radius under the 100 kg
+    # leave 25% overlap (without energy gain: the restitution phase is scaled back where it would gain, which
+    # Jacobi's simultaneous targets did by 0.8% in a step before); the cloth stretches past 100%. SoftStep(16 substeps): soft contacts sag (56% of a radius under the 100 kg
     # ball) but hold the break to 0.9% and the drape to 1.8% of the sphere's radius.
     ("Jacobi", "heavy_on_light_100"): (D,),
-    ("Jacobi", "break_16_dt_1_60"): (S, 0.4, 0.0, 1e-9, 1e-12, 0.02),
+    ("Jacobi", "break_16_dt_1_60"): (S, 0.4, 0.0, 1e-9, 1e-12, 1e-12),
     ("Jacobi", "drape_from_1m"): (D,),
     ("SoftStep", "heavy_on_light_100"): (S, 1.0, 0.0, 1e-3),
     ("SoftStep", "break_16_dt_1_60"): (S, 0.02, 0.0, 1e-9, 1e-12, 1e-12),

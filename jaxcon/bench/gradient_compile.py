@@ -17,7 +17,7 @@ def gradient_compile(small: bool, repeats: int) -> dict:
     alternating (jaxcon, plain, jaxcon, plain) on this noisy host. Full size: 16x16 cloth, 100 steps."""
     from jaxcon.bench.references.plain_pgs import plain_pgs_rollout
 
-    n, steps, it, dt = (6, 10, 10, 1 / 240) if small else (16, 100, 10, 1 / 240)
+    n, steps, it, dt = (4, 5, 10, 1 / 240) if small else (16, 100, 10, 1 / 240)
     model, state = scenes.cloth(n, n, dtype=np.float32)
     t = model.topology
 

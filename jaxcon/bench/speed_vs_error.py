@@ -137,7 +137,7 @@ def _grid_chain(model, small):
 def _grid_cloth(model, small):
     dt = 1 / 60
     if small:
-        return [(PGS(10), dt), (XPBD(substeps=4), dt), (_soft(4, dt), dt), (Direct(), dt)]
+        return [(PGS(10), dt), (XPBD(substeps=4), dt)]
     g = []
     for sub in (1, 4, 16):
         g += [(PGS(10, substeps=sub), dt), (Jacobi(20, substeps=sub), dt),
