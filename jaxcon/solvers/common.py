@@ -150,14 +150,12 @@ def contact_begin(sys, x, v, lam_ws, beta, h, split: bool, warm: bool, factor=1.
         partners, overflow = contact.neighbours(cs, x, v, h)
     obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h, partners)
     if not warm:
-        imp = contact.zero_impulses(topo, cs.ct, x.dtype)
-        if partners is not None:
-            imp = imp._replace(partners=partners, overflow=overflow)
-        return v_free, v, fr, bias, obs, pairs, tuple(jnp.zeros_like(f.C) for f in fr), imp
-    if not gradient:
-        imp_ws = lax.stop_gradient(imp_ws)
-    v, lam = warm_start(sys, v, fr, lam_ws, factor, gradient)
-    v, imp = contact.warm_start(cs, sys.w, v, obs, pairs, imp_ws, factor)
+        lam, imp = tuple(jnp.zeros_like(f.C) for f in fr), contact.zero_impulses(topo, cs.ct, x.dtype)
+    else:
+        if not gradient:
+            imp_ws = lax.stop_gradient(imp_ws)
+        v, lam = warm_start(sys, v, fr, lam_ws, factor, gradient)
+        v, imp = contact.warm_start(cs, sys.w, v, obs, pairs, imp_ws, factor)
     if partners is not None:
         imp = imp._replace(partners=partners, overflow=overflow)
     return v_free, v, fr, bias, obs, pairs, lam, imp
