@@ -125,10 +125,11 @@ def cloth_edges(nx: int, ny: int):
     return np.concatenate(pairs), np.concatenate(colour)
 
 
-def cloth(nx: int = 32, ny: int = 32, size: float = 1.0, mass: float = 1.0, *, dtype=None, gravity=None):
+def cloth(nx: int = 32, ny: int = 32, size: float = 1.0, mass: float = 1.0, *, dtype=None, gravity=None,
+          layout: str = "auto"):
     """A 3-D square cloth of nx-by-ny particles, side `size` m and total `mass` kg, lying horizontally in the
     z = 0 plane (gravity along -z), held by its two corners of the edge y = 0. Rods on structural and shear
-    edges."""
+    edges. `layout`: see `jc.build`."""
     for name, v in (("nx", nx), ("ny", ny)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
             raise ValueError(f"cloth: `{name}` must be an int >= 2, got {v!r}")
@@ -142,7 +143,7 @@ def cloth(nx: int = 32, ny: int = 32, size: float = 1.0, mass: float = 1.0, *, d
     pairs, colour = cloth_edges(nx, ny)
     masses = jnp.full(nx * ny, jnp.asarray(mass).astype(dtype) / (nx * ny))
     return build(x, masses, rods=pairs, fixed=[0, nx - 1], gravity=gravity, colouring=colour,
-                 grid_shape=(ny, nx))
+                 grid_shape=(ny, nx), layout=layout)
 
 
 # ---- contact scenes ---------------------------------------------------------------------------------------------

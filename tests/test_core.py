@@ -122,27 +122,34 @@ def test_rope_code_traced_only_when_ropes_exist():
 @pytest.mark.parametrize("solver", [jc.PGS(iterations=4), jc.Jacobi(iterations=4), jc.XPBD(substeps=3),
                                     jc.Penalty(stiffness=1e3, substeps=4), jc.Direct(), jc.SoftStep(substeps=3),
                                     jc.RATTLE(iterations=4)], ids=lambda s: type(s).__name__)
-def test_strided_and_gather_layouts_agree(solver):
-    """The same cloth through the parity-split strided layout and through gathers in user order: every solver
-    gives the same trajectory, in the user's particle order.
+def test_strided_gather_and_compact_layouts_agree(solver):
+    """The same cloth through the parity-split strided layout, through gathers in user order and through the
+    compact table (every colour in one table, swept row by row in a scan): every solver gives the same
+    trajectory, in the user's particle order.
 
-    The two layouts sum the same terms in different orders, so they agree to rounding, amplified by how the
+    The layouts sum the same terms in different orders, so they agree to rounding, amplified by how the
     method conditions the problem (not by a machine: on an H100 the dense solve's impulses differed by 3.6e-11,
     4e-6 relative, where the CPU happens to agree to the last bit). Tolerances: `_layout_tolerances`."""
-    model, state = jc.scenes.cloth(6, 5, dtype=np.float64)
+    model, state = jc.scenes.cloth(6, 5, dtype=np.float64, layout="unrolled")
     pairs, colour = jc.scenes.cloth_edges(6, 5)
-    general, gstate = jc.build(state.x, 1 / 30 * np.ones(30), rods=pairs, fixed=[0, 5], colouring=colour)
+    general, gstate = jc.build(state.x, 1 / 30 * np.ones(30), rods=pairs, fixed=[0, 5], colouring=colour,
+                               layout="unrolled")
+    compact, cstate = jc.scenes.cloth(6, 5, dtype=np.float64, layout="compact")
     t = model.topology
     assert all(b.strided for b in t.blocks) and t.view == (5, 6) and t.order is not None
-    assert not all(b.strided for b in general.topology.blocks)
+    assert not all(b.strided for b in general.topology.blocks) and not general.topology.compact
+    assert compact.topology.compact and len(compact.topology.blocks) == 1
+    assert compact.topology.n_colours == t.n_colours == 8
     dt = 1 / 240
     _, a = jc.rollout(model, state, solver, dt, 40)
-    _, b = jc.rollout(general, gstate, solver, dt, 40)
     tol = _layout_tolerances(model, solver, a, dt)
-    for name in ("x", "v", "lam"):
-        np.testing.assert_allclose(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)), rtol=0,
-                                   atol=tol[name], err_msg=name)
-    assert np.asarray(a.x)[-1, 0, 0] == 0.0 and np.asarray(a.x)[-1, 5, 0] == 1.0     # pinned corners stay put
+    for other, ostate in ((general, gstate), (compact, cstate)):
+        _, b = jc.rollout(other, ostate, solver, dt, 40)
+        for name in ("x", "v", "lam"):
+            np.testing.assert_allclose(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)), rtol=0,
+                                       atol=tol[name], err_msg=f"{name}, {other.topology!r}")
+        assert np.asarray(b.x)[-1, 0, 0] == 0.0 and np.asarray(b.x)[-1, 5, 0] == 1.0     # pinned corners stay put
+    assert np.asarray(a.x)[-1, 0, 0] == 0.0 and np.asarray(a.x)[-1, 5, 0] == 1.0
 
 
 def _layout_tolerances(model, solver, traj, dt, c=64):

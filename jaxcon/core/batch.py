@@ -32,8 +32,9 @@ from jaxcon.core.topology import Block, Topology
 
 def batch_minor_topology(t: Topology, batch: int) -> Topology:
     """The topology of `batch` disjoint copies of `t`, copy b of particle p at flat position p * batch + b of
-    the view ``(*t.view, batch)``. Constraint k of copy b is ``k * batch + b`` within its block."""
-    B = int(batch)
+    the view ``(*t.view, batch)``. Constraint k of copy b is ``k * batch + b`` within its block. Built from
+    `t`'s unrolled layout (one block per colour; a compact table's rows would each be a batch of gathers)."""
+    t, B = t.unrolled, int(batch)
     out = object.__new__(Topology)
     ar = np.arange(B)
 
@@ -130,7 +131,7 @@ def flat_blocks_out(t: Topology, flat, batch: int):
 def system(model, tb: Topology, dtype, batch: int) -> System:
     """The model's System on the batch-minor topology `tb`: inverse masses [1, *view, B], per-block rest
     lengths [*shape, B] (or [size * B]), shared by every copy."""
-    t = model.topology
+    t = model.topology.unrolled
     w = L.per_particle_in(t, jnp.asarray(model.inv_mass, dtype))
     w = jnp.broadcast_to(w[..., None], w.shape + (batch,))
     rest = constraints_in(t, jnp.asarray(model.rest_length, dtype), batch)
@@ -152,7 +153,7 @@ def layout_generic(solver, model=None) -> bool:
 
 def _minor(model, states, solver, dt, steps, save_every):
     """One batch-minor rollout of every state in `states` ([b, ...] leaves)."""
-    t, dtype, B = model.topology, jnp.result_type(states.x), states.x.shape[0]
+    t, dtype, B = model.topology.unrolled, jnp.result_type(states.x), states.x.shape[0]
     tb = batch_minor_topology(t, B)
     sys = system(model, tb, dtype, B)
     x = particles_in(t, jnp.asarray(states.x, dtype))

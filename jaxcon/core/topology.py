@@ -10,6 +10,15 @@ order holds between colours. Internally particles are stored struct-of-arrays as
 * a gather block otherwise. Reading is a gather; writing back is also a gather, from the block's impulses into
   particle order (each particle appears at most once per colour, so no scatter-add is needed).
 
+* a table block (the *compact* layout), which holds every colour at once as a ``[colours, width]`` table of
+  index pairs, padded with an out-of-range particle index. Per-constraint quantities (frames, biases, warm
+  starts) are computed for the whole table in one pass; Gauss-Seidel sweeps visit its rows in a `lax.scan`
+  (`layout.each_colour`), so one colour's code is traced and compiled once instead of once per colour.
+
+Small models with several colours get the compact layout by default: it compiles their gradients 3 to 4x
+faster and costs run time, which grows with the colour size (docs/performance.md has the trade measured).
+Larger models keep one block per colour. ``jc.build(..., layout=...)`` chooses explicitly.
+
 The internal particle order may differ from the user's. When a colour steps by 2 along the last (contiguous)
 axis of a grid view, e.g. a cloth's horizontal edges split by column parity, each row of that axis is stored
 as its even entries, then its odd ones (a permutation; the view keeps the grid's shape): every such colour
@@ -110,6 +119,13 @@ def _strided_box(coords: np.ndarray) -> Optional[tuple]:
     return tuple(start), tuple(step), tuple(count)
 
 
+LAYOUTS = ("auto", "compact", "unrolled")
+#: 'auto' picks the compact layout when the model has at least this many colours ...
+COMPACT_MIN_COLOURS = 4
+#: ... and none of them has more constraints than this (docs/performance.md, "Compact and unrolled layouts").
+COMPACT_MAX_WIDTH = 256
+
+
 @dataclasses.dataclass(frozen=True)
 class Block:
     """One colour of constraints, solved together. Shapes are static; arrays are read-only NumPy."""
@@ -124,6 +140,8 @@ class Block:
     src: Optional[StaticArray]    # gather: [n] index into concat(p_i, p_j, 0) for the write-back
     rope: Optional[StaticArray]   # bool [*shape] where mixed; None when all rods or all ropes
     all_rope: bool
+    table: bool = False           # compact layout: i_idx, j_idx are [colours, width], padded with index n
+    flat: Optional[StaticArray] = None   # table: [size] flat positions of the real entries, in block order
 
     @property
     def strided(self) -> bool:
@@ -137,10 +155,11 @@ class Block:
 class Topology:
     """Everything static about a model: sizes, index pairs, kinds, colouring and the internal layout.
 
-    Hashes and compares by content (computed once), so it can be jit metadata.
+    Hashes and compares by content (computed once), so it can be jit metadata. `layout` is 'auto' (compact for
+    small models with several colours: `COMPACT_MIN_COLOURS`, `COMPACT_MAX_WIDTH`), 'compact' or 'unrolled'.
     """
 
-    def __init__(self, n, dim, i, j, is_rope, colour, view):
+    def __init__(self, n, dim, i, j, is_rope, colour, view, layout="auto"):
         self.n = int(n)
         self.dim = int(dim)
         self.i = np.asarray(i, np.int64)
@@ -153,16 +172,60 @@ class Topology:
             a.setflags(write=False)
         self.has_ropes = bool(self.is_rope.any())
         self.has_rods = bool((~self.is_rope).any())
+        if layout not in LAYOUTS:
+            raise ValueError(f"build: `layout` must be one of {LAYOUTS}, got {layout!r}")
         self._choose_layout()
+        if layout == "compact" or (layout == "auto" and self._small()):
+            self._compact()
+        self.layout = "compact" if self.compact else "unrolled"
         self._key = (
             self.n, self.dim, self.view, self.i.tobytes(), self.j.tobytes(), self.is_rope.tobytes(),
-            self.colour.tobytes(),
+            self.colour.tobytes(), self.layout,
         )
         self._hash = hash(self._key)
 
+    compact = False
+
     @property
     def n_colours(self) -> int:
-        return len(self.blocks)
+        return int(self.blocks[0].shape[0]) if self.compact else len(self.blocks)
+
+    def _small(self) -> bool:
+        sizes = np.bincount(np.unique(self.colour, return_inverse=True)[1]) if self.m else np.zeros(0, int)
+        return len(sizes) >= COMPACT_MIN_COLOURS and int(sizes.max()) <= COMPACT_MAX_WIDTH
+
+    def _compact(self):
+        """Replace the blocks by one table block: row c holds colour c's constraints in the order of the
+        unrolled layout without the parity split, padded to the widest colour with particle index n."""
+        self.pos = self.order = None
+        blocks, self.perm, self.inv_perm = self._build_blocks(None)
+        width = max(b.size for b in blocks)
+        lo, hi = np.minimum(self.i, self.j)[self.perm], np.maximum(self.i, self.j)[self.perm]
+        I = np.full((len(blocks), width), self.n, np.int32)
+        J = np.full((len(blocks), width), self.n, np.int32)
+        src = np.full((len(blocks), width), self.m, np.int32)      # block-order position, m where padding
+        rope = np.zeros((len(blocks), width), bool)
+        for c, b in enumerate(blocks):
+            seg = slice(b.offset, b.offset + b.size)
+            I[c, :b.size], J[c, :b.size] = lo[seg], hi[seg]
+            src[c, :b.size] = np.arange(b.offset, b.offset + b.size)
+            rope[c, :b.size] = self.is_rope[self.perm[seg]]
+        flat = np.concatenate([c * width + np.arange(b.size) for c, b in enumerate(blocks)]).astype(np.int32)
+        all_rope = bool(self.is_rope.all())
+        mixed = StaticArray(rope) if self.has_ropes and not all_rope else None
+        self.blocks = (Block(0, self.m, I.shape, None, None, StaticArray(I), StaticArray(J), StaticArray(src), mixed,
+                             all_rope, table=True, flat=StaticArray(flat)),)
+        self.compact = True
+
+    @property
+    def unrolled(self) -> "Topology":
+        """This topology in the unrolled layout (one block per colour): itself unless it is compact."""
+        if not self.compact:
+            return self
+        if getattr(self, "_unrolled", None) is None:
+            self._unrolled = Topology(self.n, self.dim, self.i, self.j, self.is_rope, self.colour, self.view,
+                                      layout="unrolled")
+        return self._unrolled
 
     def _choose_layout(self):
         """User order, or each row of the last axis stored evens first (parity split) when that keeps every
@@ -242,5 +305,8 @@ class Topology:
     def __repr__(self):
         kinds = f"{int((~self.is_rope).sum())} rods, {int(self.is_rope.sum())} ropes"
         strided = sum(b.strided for b in self.blocks)
+        if self.compact:
+            return (f"Topology(n={self.n}, dim={self.dim}, {kinds}, {self.n_colours} colours (compact: one "
+                    f"[{self.blocks[0].shape[0]}, {self.blocks[0].shape[1]}] table), view={self.view})")
         return (f"Topology(n={self.n}, dim={self.dim}, {kinds}, {self.n_colours} colours "
                 f"({strided} strided), view={self.view}{'' if self.order is None else ', parity-split'})")

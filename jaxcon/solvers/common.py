@@ -53,7 +53,7 @@ def apply_impulses(sys: System, v, fr: tuple, lam: tuple):
     """v + M^-1 J^T lam for every block (tension convention: lam > 0 pulls the endpoints together)."""
     for blk, f, l in zip(sys.topology.blocks, fr, lam):
         p = f.n * l
-        v = v + L.scatter_pair(sys.topology, blk, f.wi * p, -f.wj * p)
+        v = L.add_pair(sys.topology, blk, v, f.wi * p, -f.wj * p)
     return v
 
 
@@ -113,21 +113,27 @@ def pseudo_velocities(sys: System, fr: tuple, correction: tuple, iterations: int
     vp0 = jnp.zeros((topo.dim,) + topo.view, fr[0].n.dtype)
     lam0 = tuple(jnp.zeros_like(f.C) for f in fr)
 
+    def update(vp, blk, f, b, k, lam):
+        ui, uj = L.gather_pair(topo, blk, vp)
+        step = (jnp.sum((uj - ui) * f.n, axis=0) + b) * k
+        new = clamp_ropes(blk, lam + (step if jacobi_relaxation is None else jacobi_relaxation * step))
+        p = f.n * (new - lam)
+        return f.wi * p, -f.wj * p, new
+
+    def colour(vp, blk, rows):              # Gauss-Seidel: each colour reads the previous colours' changes
+        pi, pj, new = update(vp, blk, *rows)
+        return L.add_pair(topo, blk, vp, pi, pj), new
+
     def sweep(_, carry):
         vp, lam = carry
         lam = list(lam)
         dv = jnp.zeros_like(vp)          # Jacobi: every block reads the same vp, the changes are summed
         for c, (blk, f, (b, k)) in enumerate(zip(topo.blocks, fr, correction)):
-            ui, uj = L.gather_pair(topo, blk, vp)
-            step = (jnp.sum((uj - ui) * f.n, axis=0) + b) * k
-            new = clamp_ropes(blk, lam[c] + (step if jacobi_relaxation is None else jacobi_relaxation * step))
-            p = f.n * (new - lam[c])
-            lam[c] = new
-            d = L.scatter_pair(topo, blk, f.wi * p, -f.wj * p)
             if jacobi_relaxation is None:
-                vp = vp + d
+                vp, lam[c] = L.each_colour(blk, colour, vp, (f, b, k, lam[c]))
             else:
-                dv = dv + d
+                pi, pj, lam[c] = update(vp, blk, f, b, k, lam[c])
+                dv = L.add_pair(topo, blk, dv, pi, pj)
         return vp + dv, tuple(lam)
 
     return lax.fori_loop(0, iterations, sweep, (vp0, lam0))[0]

@@ -31,7 +31,7 @@ def rod_degree(topo, fr, like):
     c = jnp.zeros((1,) + like.shape[1:], like.dtype)
     for blk, f in zip(topo.blocks, fr):
         one = (f.k > 0).astype(like.dtype)[None]
-        c = c + L.scatter_pair(topo, blk, one, one)
+        c = L.add_pair(topo, blk, c, one, one)
     return c
 
 
@@ -76,7 +76,7 @@ def rod_pass(topo, fr, bias, v, lam, count, relax):
             k = L.safe_reciprocal(ci[0] * f.wi + cj[0] * f.wj) * (f.k > 0).astype(f.k.dtype)
         nl = clamp_ropes(blk, l + (rel + b) * k)
         p = f.n * (nl - l)
-        dv = dv + L.scatter_pair(topo, blk, f.wi * p, -f.wj * p)
+        dv = L.add_pair(topo, blk, dv, f.wi * p, -f.wj * p)
         new.append(nl)
     return dv, tuple(new)
 

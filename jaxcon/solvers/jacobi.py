@@ -114,7 +114,7 @@ class Jacobi(Solver):
                     rel = jnp.sum((vj - vi) * f.n, axis=0)
                     nl = clamp_ropes(blk, l + relax * (rel + b) * f.k)
                     p = f.n * (nl - l)
-                    dv = dv + L.scatter_pair(topo, blk, f.wi * p, -f.wj * p)
+                    dv = L.add_pair(topo, blk, dv, f.wi * p, -f.wj * p)
                     new.append(nl)
                 return v + dv, tuple(new)
 

@@ -185,7 +185,7 @@ class Penalty(Solver):
             v = sys.apply_gravity(v, h)
             for blk, (n, wi, wj, *_), p in zip(topo.blocks, geo, imp):
                 q = n * p
-                v = v + L.scatter_pair(topo, blk, wi * q, -wj * q)
+                v = L.add_pair(topo, blk, v, wi * q, -wj * q)
             return x + h * v, v, tuple(imp)
 
         if sys.contact is None:

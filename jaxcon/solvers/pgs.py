@@ -159,15 +159,18 @@ class PGS(Solver):
     @staticmethod
     def _block_sweep(topo, fr, bias):
         """One Gauss-Seidel pass over the constraint colours: (v, lam) -> (v, lam)."""
+        def colour(v, blk, rows):
+            f, b, lam = rows
+            vi, vj = L.gather_pair(topo, blk, v)
+            rel = L.dot(blk, vj - vi, f.n)
+            new = clamp_ropes(blk, lam + (rel + b) * f.k)
+            p = f.n * (new - lam)
+            return L.add_pair(topo, blk, v, f.wi * p, -f.wj * p), new
+
         def sweep(v, lam):
             lam = list(lam)
             for c, (blk, f, b) in enumerate(zip(topo.blocks, fr, bias)):
-                vi, vj = L.gather_pair(topo, blk, v)
-                rel = L.dot0(vj - vi, f.n)
-                new = clamp_ropes(blk, lam[c] + (rel + b) * f.k)
-                p = f.n * (new - lam[c])
-                lam[c] = new
-                v = v + L.scatter_pair(topo, blk, f.wi * p, -f.wj * p)
+                v, lam[c] = L.each_colour(blk, colour, v, (f, b, lam[c]))
             return v, tuple(lam)
         return sweep
 
@@ -193,15 +196,18 @@ class PGS(Solver):
             return tuple(-r for r in relative(apply_impulses(sys, zero_v, fr, l)))
 
         def solve(_, rhs, guess=lax.stop_gradient(lam0)):
+            def colour(u, blk, rows):
+                f, r, l = rows
+                ui, uj = L.gather_pair(topo, blk, u)
+                d = (jnp.sum((uj - ui) * f.n, axis=0) + r) * f.k
+                p = f.n * d
+                return L.add_pair(topo, blk, u, f.wi * p, -f.wj * p), l + d
+
             def sweep(_, carry):
                 u, l = carry
                 l = list(l)
                 for c, (blk, f) in enumerate(zip(topo.blocks, fr)):
-                    ui, uj = L.gather_pair(topo, blk, u)
-                    d = (jnp.sum((uj - ui) * f.n, axis=0) + rhs[c]) * f.k
-                    l[c] = l[c] + d
-                    p = f.n * d
-                    u = u + L.scatter_pair(topo, blk, f.wi * p, -f.wj * p)
+                    u, l[c] = L.each_colour(blk, colour, u, (f, rhs[c], l[c]))
                 return u, tuple(l)
 
             u0 = apply_impulses(sys, zero_v, fr, guess)

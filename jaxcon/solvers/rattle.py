@@ -65,22 +65,25 @@ class RATTLE(Solver):
         v = sys.apply_gravity(v, h / 2)
         x = x + h * v
 
+        def shake_colour(xv, blk, rows):
+            x, v = xv
+            f, r2, mu = rows
+            xi, xj = L.gather_pair(topo, blk, x)
+            d = xj - xi
+            res = jnp.sum(d * d, axis=0) - r2
+            s = jnp.sum(d * f.n, axis=0)
+            ok = (f.k > 0) & (s > 0) & (jnp.abs(res) > tol * 2 * r2)
+            upd = jnp.where(ok, res * f.k / (2 * jnp.where(ok, s, 1)), 0)
+            new = clamp_ropes(blk, mu + upd)
+            p = f.n * (new - mu)
+            pi, pj = f.wi * p, -f.wj * p
+            return (L.add_pair(topo, blk, x, pi, pj), L.add_pair(topo, blk, v, pi / h, pj / h)), new
+
         def shake(_, carry):
             x, v, mu = carry
             mu = list(mu)
             for c, (blk, f, r2) in enumerate(zip(topo.blocks, fr0, rest2)):
-                xi, xj = L.gather_pair(topo, blk, x)
-                d = xj - xi
-                res = jnp.sum(d * d, axis=0) - r2
-                s = jnp.sum(d * f.n, axis=0)
-                ok = (f.k > 0) & (s > 0) & (jnp.abs(res) > tol * 2 * r2)
-                upd = jnp.where(ok, res * f.k / (2 * jnp.where(ok, s, 1)), 0)
-                new = clamp_ropes(blk, mu[c] + upd)
-                p = f.n * (new - mu[c])
-                mu[c] = new
-                dp = L.scatter_pair(topo, blk, f.wi * p, -f.wj * p)
-                x = x + dp
-                v = v + dp / h
+                (x, v), mu[c] = L.each_colour(blk, shake_colour, (x, v), (f, r2, mu[c]))
             return x, v, tuple(mu)
 
         x, v, mu = lax.fori_loop(0, self.iterations, shake, (x, v, zero), unroll=self.iterations <= _UNROLL)
@@ -88,20 +91,23 @@ class RATTLE(Solver):
         v = sys.apply_gravity(v, h / 2)
         fr1 = frames(sys, x)
 
+        def project_colour(v, blk, rows):
+            f, r, lam = rows
+            vi, vj = L.gather_pair(topo, blk, v)
+            rel = jnp.sum((vj - vi) * f.n, axis=0)
+            active = jnp.abs(rel) * h > tol * r
+            if blk.has_rope:  # a rope that is slack after the drift does not constrain the velocity
+                taut = f.C > -tol * jnp.maximum(r, tiny)
+                active = active & (taut if blk.all_rope else (taut | ~blk.rope.array))
+            new = clamp_ropes(blk, lam + jnp.where(active, rel * f.k, 0))
+            p = f.n * (new - lam)
+            return L.add_pair(topo, blk, v, f.wi * p, -f.wj * p), new
+
         def project(_, carry):
             v, lam = carry
             lam = list(lam)
             for c, (blk, f, r) in enumerate(zip(topo.blocks, fr1, sys.rest)):
-                vi, vj = L.gather_pair(topo, blk, v)
-                rel = jnp.sum((vj - vi) * f.n, axis=0)
-                active = jnp.abs(rel) * h > tol * r
-                if blk.has_rope:  # a rope that is slack after the drift does not constrain the velocity
-                    taut = f.C > -tol * jnp.maximum(r, tiny)
-                    active = active & (taut if blk.all_rope else (taut | ~blk.rope.array))
-                new = clamp_ropes(blk, lam[c] + jnp.where(active, rel * f.k, 0))
-                p = f.n * (new - lam[c])
-                lam[c] = new
-                v = v + L.scatter_pair(topo, blk, f.wi * p, -f.wj * p)
+                v, lam[c] = L.each_colour(blk, project_colour, v, (f, r, lam[c]))
             return v, tuple(lam)
 
         v, lam2 = lax.fori_loop(0, self.iterations, project, (v, zero), unroll=self.iterations <= _UNROLL)

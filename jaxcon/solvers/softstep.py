@@ -32,8 +32,8 @@ def soft_coefficients(hertz, damping_ratio, h):
 def _sweep(topo, v, lam, fr, bias, mass_scale, impulse_scale, inv_h):
     """One Gauss-Seidel sweep over the rod and rope colours with soft (or, mass_scale 1 and impulse_scale 0,
     rigid) rows; a slack rope is speculative and rigid. Returns (v, lam)."""
-    lam = list(lam)
-    for c, (blk, f) in enumerate(zip(topo.blocks, fr)):
+    def colour(v, blk, rows):
+        f, lam = rows
         vi, vj = L.gather_pair(topo, blk, v)
         rel = jnp.sum((vj - vi) * f.n, axis=0)
         ms, isc, b = mass_scale, impulse_scale, bias(f)
@@ -42,10 +42,13 @@ def _sweep(topo, v, lam, fr, bias, mass_scale, impulse_scale, inv_h):
             b = jnp.where(slack, f.C * inv_h, b)
             ms = jnp.where(slack, 1, ms)
             isc = jnp.where(slack, 0, isc)
-        new = clamp_ropes(blk, lam[c] + ms * f.k * (rel + b) - isc * lam[c])
-        p = f.n * (new - lam[c])
-        lam[c] = new
-        v = v + L.scatter_pair(topo, blk, f.wi * p, -f.wj * p)
+        new = clamp_ropes(blk, lam + ms * f.k * (rel + b) - isc * lam)
+        p = f.n * (new - lam)
+        return L.add_pair(topo, blk, v, f.wi * p, -f.wj * p), new
+
+    lam = list(lam)
+    for c, (blk, f) in enumerate(zip(topo.blocks, fr)):
+        v, lam[c] = L.each_colour(blk, colour, v, (f, lam[c]))
     return v, tuple(lam)
 
 

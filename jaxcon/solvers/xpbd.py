@@ -75,24 +75,27 @@ class XPBD(Solver):
             wi, wj = wi[0], wj[0]
             w_pairs.append((wi, wj, L.safe_reciprocal(wi + wj + alpha)))
 
+        def colour(p, blk, rows):
+            rest, wi, wj, k, mu = rows
+            pi, pj = L.gather_pair(topo, blk, p)
+            d = pj - pi
+            # n (new - mu) with n = d / |d| is written as d times one scalar per constraint, built from
+            # |d|^2 and 1/|d| (rods need no clamp: 1/|d| is 0 at zero length). `safe_length` keeps |d|^2
+            # a reduction: on CPU, XLA stores d and |d|^2 as arrays before it, so the update below reads
+            # them instead of recomputing the projection per particle. Written as an elementwise dot
+            # (L.dot0), the update kernels were split and re-summed every colour: 8 to 16x slower
+            # on the 64x64 cloth.
+            dist, inv = L.safe_length(d)
+            dmu = (dist - rest - alpha * mu) * k
+            new = clamp_ropes(blk, mu + dmu * (inv > 0).astype(inv.dtype))
+            q = d * (((new - mu) if blk.has_rope else dmu) * inv)
+            return L.add_pair(topo, blk, p, wi * q, -wj * q), new
+
         def sweep(_, carry):
             p, mu = carry
             mu = list(mu)
             for c, (blk, rest, (wi, wj, k)) in enumerate(zip(topo.blocks, sys.rest, w_pairs)):
-                pi, pj = L.gather_pair(topo, blk, p)
-                d = pj - pi
-                # n (new - mu) with n = d / |d| is written as d times one scalar per constraint, built from
-                # |d|^2 and 1/|d| (rods need no clamp: 1/|d| is 0 at zero length). `safe_length` keeps |d|^2
-                # a reduction: on CPU, XLA stores d and |d|^2 as arrays before it, so the update below reads
-                # them instead of recomputing the projection per particle. Written as an elementwise dot
-                # (L.dot0), the update kernels were split and re-summed every colour: 8 to 16x slower
-                # on the 64x64 cloth.
-                dist, inv = L.safe_length(d)
-                dmu = (dist - rest - alpha * mu[c]) * k
-                new = clamp_ropes(blk, mu[c] + dmu * (inv > 0).astype(inv.dtype))
-                q = d * (((new - mu[c]) if blk.has_rope else dmu) * inv)
-                mu[c] = new
-                p = p + L.scatter_pair(topo, blk, wi * q, -wj * q)
+                p, mu[c] = L.each_colour(blk, colour, p, (rest, wi, wj, k, mu[c]))
             return p, tuple(mu)
         return sweep
 
