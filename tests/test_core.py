@@ -477,3 +477,48 @@ def test_guarded_length_has_finite_gradients_near_zero(dtype):
     for solver in (jc.PGS(), jc.XPBD()):
         g = jax.grad(lambda x: jnp.sum(jc.rollout(model, jc.State(x, state.v, state.lam), solver, 1 / 60, 3)[0].x ** 2))(state.x)
         assert np.all(np.isfinite(np.asarray(g))), type(solver).__name__
+
+
+# ---- the compact layout ------------------------------------------------------------------------------------
+def test_layout_auto_picks_compact_for_small_many_coloured_models():
+    assert jc.scenes.cloth(16, 16)[0].topology.compact          # 8 colours, at most 128 rods each
+    assert not jc.scenes.cloth(32, 32)[0].topology.compact      # colours of up to 512 rods: unrolled
+    chain = jc.scenes.chain(20)[0].topology
+    assert not chain.compact and chain.unrolled is chain                # 2 colours: nothing to share
+    c = jc.scenes.cloth(4, 4, layout="compact")[0].topology
+    assert c.unrolled.layout == "unrolled" and c.unrolled.n_colours == c.n_colours
+    with pytest.raises(ValueError, match="`layout` must be one of"):
+        jc.scenes.cloth(4, 4, layout="fast")
+
+
+@pytest.mark.parametrize("solver", [jc.PGS(iterations=6), jc.Jacobi(iterations=6), jc.XPBD(substeps=2),
+                                    jc.SoftStep(substeps=2), jc.RATTLE(iterations=6),
+                                    jc.PGS(iterations=6, stabilization="split")],
+                         ids=lambda s: f"{type(s).__name__}-{getattr(s, 'stabilization', '')}")
+def test_compact_layout_with_mixed_ropes_agrees_and_differentiates(solver):
+    """A cloth whose shear edges are ropes (rods and ropes in the same colours) through both layouts: the same
+    trajectory, and the same gradient with respect to the rest lengths (float64, x64 off: dtype given)."""
+    pairs, colour = jc.scenes.cloth_edges(5, 4)
+    x = np.stack(np.meshgrid(np.linspace(0, 1, 5), np.linspace(0, 0.75, 4)), -1).reshape(-1, 2)
+    x = np.concatenate([x, np.zeros((20, 1))], 1)
+    d = np.abs(x[pairs[:, 0]] - x[pairs[:, 1]])
+    shear = (d[:, 0] > 1e-9) & (d[:, 1] > 1e-9)
+    rods, ropes = pairs[~shear], pairs[shear]
+    col = np.concatenate([colour[~shear], colour[shear]])
+    models = {lay: jc.build(x, np.full(20, 0.05), rods=rods, ropes=ropes, fixed=[0, 4], colouring=col,
+                            dtype=np.float64, layout=lay) for lay in ("compact", "unrolled")}
+    assert models["compact"][0].topology.compact and not models["unrolled"][0].topology.compact
+    rest0 = models["compact"][0].rest_length * 0.97
+
+    def loss(rest, lay):
+        model, state = models[lay]
+        final, traj = jc.rollout(model.replace(rest_length=rest), state, solver, 1 / 120, 30)
+        return jnp.sum(final.x[:, 2] ** 2) + jnp.sum(traj.lam ** 2), traj
+
+    (la, ta), ga = jax.value_and_grad(loss, has_aux=True)(rest0, "compact")
+    (lb, tb), gb = jax.value_and_grad(loss, has_aux=True)(rest0, "unrolled")
+    assert np.asarray(tb.lam)[:, len(rods):].min() >= -1e-12              # ropes only pull
+    np.testing.assert_allclose(np.asarray(ta.x), np.asarray(tb.x), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(ta.lam), np.asarray(tb.lam), rtol=0, atol=1e-10)
+    assert np.all(np.isfinite(np.asarray(ga))) and float(jnp.linalg.norm(gb)) > 0
+    np.testing.assert_allclose(np.asarray(ga), np.asarray(gb), rtol=1e-7, atol=1e-9 * float(jnp.abs(gb).max()))

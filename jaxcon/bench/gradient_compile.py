@@ -7,26 +7,26 @@ import jax
 import numpy as np
 
 from jaxcon import scenes
-from jaxcon.core.sim import _rollout_jit, rollout
+from jaxcon.core.sim import rollout
 from jaxcon.solvers.pgs import PGS
 
 
 def gradient_compile(small: bool, repeats: int) -> dict:
     """Trace, compile and run time of jax.grad of a cloth rollout's loss (PGS(10), float32, final state) with
-    respect to the rest lengths: jaxcon against the plain scatter-add PGS of `_plain_pgs`, in one process,
-    alternating (jaxcon, plain, jaxcon, plain) on this noisy host. Full size: 16x16 cloth, 100 steps."""
+    respect to the rest lengths: jaxcon in its default layout, jaxcon with one block per colour
+    (layout='unrolled'), and the plain scatter-add PGS of `references.plain_pgs`, in one process, alternating on
+    this noisy host. Full size: 16x16 cloth, 100 steps (compact by default). The ratio compares jaxcon's default
+    with the plain version; "runtime_cost" is the default layout's run time over the unrolled one's, the price
+    of the faster compile."""
     from jaxcon.bench.references.plain_pgs import plain_pgs_rollout
 
     n, steps, it, dt = (4, 5, 10, 1 / 240) if small else (16, 100, 10, 1 / 240)
     model, state = scenes.cloth(n, n, dtype=np.float32)
+    unrolled, _ = scenes.cloth(n, n, dtype=np.float32, layout="unrolled")
     t = model.topology
 
-    def jaxcon_loss(rest, stored=False):
-        m, solver = model.replace(rest_length=rest), PGS(it, beta=0.2)
-        if stored:      # every step's intermediates stored instead of recomputed: the program before that change
-            final, _ = _rollout_jit(m, state, solver, dt, steps, steps, None, False)
-        else:           # what users get: steps rematerialised in reverse mode
-            final, _ = rollout(m, state, solver, dt, steps, save_every=steps)
+    def jaxcon_loss(rest, m=model):
+        final, _ = rollout(m.replace(rest_length=rest), state, PGS(it, beta=0.2), dt, steps, save_every=steps)
         return jax.numpy.mean(final.x[..., 2] ** 2)
 
     def plain_loss(rest):
@@ -34,12 +34,12 @@ def gradient_compile(small: bool, repeats: int) -> dict:
                                     model.gravity, 0.2, dt, steps, it)
         return jax.numpy.mean(x[..., 2] ** 2)
 
-    losses = {"jaxcon": jaxcon_loss, "plain": plain_loss, "jaxcon_stored": lambda r: jaxcon_loss(r, stored=True)}
-
-    row = {"case": f"cloth_{n}x{n}", "steps": steps, "solver": f"PGS({it})", "dtype": "float32"}
-    names = ("jaxcon", "plain") if small else ("jaxcon", "plain", "jaxcon_stored")
+    losses = {"jaxcon": jaxcon_loss, "plain": plain_loss,
+              "jaxcon_unrolled": lambda r: jaxcon_loss(r, unrolled)}
+    row = {"case": f"cloth_{n}x{n}", "steps": steps, "solver": f"PGS({it})", "dtype": "float32",
+           "layout": t.layout}
     for _ in range(1 if small else 2):
-        for name in names:
+        for name in losses:
             g = jax.jit(jax.grad(losses[name]))
             t0 = time.perf_counter()
             lowered = g.lower(model.rest_length)
@@ -57,18 +57,17 @@ def gradient_compile(small: bool, repeats: int) -> dict:
             row[f"{name}_stablehlo_ops"] = lowered.as_text().count(" = ")
     for key in [k for k in row if k.endswith("_s")]:
         row[key] = float(np.min(row[key]))        # the quieter of the alternating rounds
-    total = {k: row[f"{k}_trace_s"] + row[f"{k}_compile_s"] for k in ("jaxcon", "plain")}
+    total = {k: row[f"{k}_trace_s"] + row[f"{k}_compile_s"] for k in losses}
     row["trace_plus_compile_ratio"] = total["jaxcon"] / total["plain"]
+    row["unrolled_trace_plus_compile_ratio"] = total["jaxcon_unrolled"] / total["plain"]
+    row["runtime_cost"] = row["jaxcon_run_s"] / row["jaxcon_unrolled_run_s"]
     print(f"\ngradient of a {n}x{n} cloth rollout ({steps} steps, PGS({it}), float32) w.r.t. rest lengths, best of "
-          f"{1 if small else 2} alternating round(s): jaxcon trace {row['jaxcon_trace_s']:.2f} s + compile "
-          f"{row['jaxcon_compile_s']:.2f} s, "
-          f"run {row['jaxcon_run_s'] * 1e3:.1f} ms ({row['jaxcon_stablehlo_ops']} StableHLO ops); plain scatter-add "
-          f"PGS trace {row['plain_trace_s']:.2f} s + compile {row['plain_compile_s']:.2f} s, run "
-          f"{row['plain_run_s'] * 1e3:.1f} ms ({row['plain_stablehlo_ops']} ops); trace + compile ratio "
-          f"{row['trace_plus_compile_ratio']:.2f}")
-    if "jaxcon_stored_compile_s" in row:
-        print(f"  jaxcon storing every step's intermediates instead: trace {row['jaxcon_stored_trace_s']:.2f} s "
-              f"+ compile "
-              f"{row['jaxcon_stored_compile_s']:.2f} s, run {row['jaxcon_stored_run_s'] * 1e3:.1f} ms "
-              f"({row['jaxcon_stored_stablehlo_ops']} ops)")
+          f"{1 if small else 2} alternating round(s), trace + compile, run:")
+    for name, label in (("jaxcon", f"jaxcon ({t.layout}, the default)"), ("jaxcon_unrolled", "jaxcon (unrolled)"),
+                        ("plain", "plain scatter-add PGS")):
+        print(f"  {label:32s} {row[f'{name}_trace_s']:.2f} + {row[f'{name}_compile_s']:.2f} s, run "
+              f"{row[f'{name}_run_s'] * 1e3:.1f} ms ({row[f'{name}_stablehlo_ops']} StableHLO ops)")
+    print(f"  trace + compile against plain: {row['trace_plus_compile_ratio']:.2f} (default), "
+          f"{row['unrolled_trace_plus_compile_ratio']:.2f} (unrolled); run time of the default over the unrolled "
+          f"layout: {row['runtime_cost']:.2f}x")
     return row
