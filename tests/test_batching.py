@@ -121,7 +121,7 @@ SHARDED = textwrap.dedent("""
         rng = np.random.default_rng(1)
         states = jax.tree.map(lambda a: jnp.broadcast_to(a, (B,) + a.shape) + 0, state)
         states = states.replace(v=states.v + 0.1 * rng.normal(size=states.v.shape))
-        for solver in (jc.PGS(), jc.Direct()):
+        for solver in ((jc.PGS(), jc.Direct()) if B == 10 else (jc.PGS(),)):    # Direct (vmap-batched) once
             one = jc.batched_rollout(model, states, solver, 1 / 240, 12, devices=jax.devices()[:1])
             every = jc.batched_rollout(model, states, solver, 1 / 240, 12)
             key = f"{B}_{type(solver).__name__}"
@@ -157,11 +157,10 @@ def sharded():
 
 def test_batched_rollout_shards_the_batch_over_every_device(sharded):
     assert sharded["devices"] == 4
-    for B in (8, 10):
-        for solver in ("PGS", "Direct"):
-            assert sharded[f"{B}_{solver}_err"] < 1e-12, sharded
-            assert sharded[f"{B}_{solver}_spans"] == 4
-            assert sharded[f"{B}_{solver}_shape"] == [B, 12, 3, 2]
+    for B, solver in ((8, "PGS"), (10, "PGS"), (10, "Direct")):
+        assert sharded[f"{B}_{solver}_err"] < 1e-12, sharded
+        assert sharded[f"{B}_{solver}_spans"] == 4
+        assert sharded[f"{B}_{solver}_shape"] == [B, 12, 3, 2]
     assert sharded["mesh_spans"] == 2
 
 
