@@ -489,6 +489,10 @@ def test_layout_auto_picks_compact_for_small_many_coloured_models():
     assert c.unrolled.layout == "unrolled" and c.unrolled.n_colours == c.n_colours
     with pytest.raises(ValueError, match="`layout` must be one of"):
         jc.scenes.cloth(4, 4, layout="fast")
+    # a model without rods or ropes has no colours to put in a table: 'compact' leaves it as it is
+    ball, b0 = jc.build([[0.0, 1.0]], 1.0, planes=[([0.0, 1.0], 0.0)], radius=0.1, layout="compact")
+    assert ball.topology.layout == "unrolled" and ball.topology.n_colours == 0
+    assert np.all(np.isfinite(np.asarray(jc.rollout(ball, b0, jc.PGS(), 1 / 60, 5)[0].x)))
 
 
 def _mixed_rope_cloths():

@@ -48,9 +48,7 @@ def constraints_in(topo: Topology, a):
     """[..., m] in the user's constraint order -> tuple of [..., *block.shape], one per block (a compact
     topology's table is zero at its padding)."""
     if topo.compact:
-        (b,) = topo.blocks
-        src = np.where(b.src.array < topo.m, topo.perm[np.minimum(b.src.array, topo.m - 1)], topo.m)
-        return (jnp.take(a, src, axis=-1, mode="fill", fill_value=0),)
+        return (jnp.take(a, topo.blocks[0].src.array, axis=-1, mode="fill", fill_value=0),)
     a = jnp.take(a, topo.perm, axis=-1) if topo.m else a
     lead = a.shape[:-1]
     return tuple(a[..., b.offset: b.offset + b.size].reshape(lead + b.shape) for b in topo.blocks)

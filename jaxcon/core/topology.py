@@ -140,7 +140,8 @@ class Block:
     src: Optional[StaticArray]    # gather: [n] index into concat(p_i, p_j, 0) for the write-back
     rope: Optional[StaticArray]   # bool [*shape] where mixed; None when all rods or all ropes
     all_rope: bool
-    table: bool = False           # compact layout: i_idx, j_idx are [colours, width], padded with index n
+    table: bool = False           # compact layout: i_idx, j_idx, src (user constraint index, m where
+    #                               padding) are [colours, width], the indices padded with particle index n
     flat: Optional[StaticArray] = None   # table: [size] flat positions of the real entries, in block order
 
     @property
@@ -174,9 +175,11 @@ class Topology:
         self.has_rods = bool((~self.is_rope).any())
         if layout not in LAYOUTS:
             raise ValueError(f"build: `layout` must be one of {LAYOUTS}, got {layout!r}")
-        self._choose_layout()
-        if layout == "compact" or (layout == "auto" and self._small()):
+        # a model without rods or ropes has no colours to put in a table: it keeps the (empty) unrolled layout
+        if self.m and (layout == "compact" or (layout == "auto" and self._small())):
             self._compact()
+        else:
+            self._choose_layout()
         self.layout = "compact" if self.compact else "unrolled"
         self._key = (
             self.n, self.dim, self.view, self.i.tobytes(), self.j.tobytes(), self.is_rope.tobytes(),
@@ -191,7 +194,7 @@ class Topology:
         return int(self.blocks[0].shape[0]) if self.compact else len(self.blocks)
 
     def _small(self) -> bool:
-        sizes = np.bincount(np.unique(self.colour, return_inverse=True)[1]) if self.m else np.zeros(0, int)
+        sizes = np.bincount(np.unique(self.colour, return_inverse=True)[1])
         return len(sizes) >= COMPACT_MIN_COLOURS and int(sizes.max()) <= COMPACT_MAX_WIDTH
 
     def _compact(self):
@@ -203,12 +206,12 @@ class Topology:
         lo, hi = np.minimum(self.i, self.j)[self.perm], np.maximum(self.i, self.j)[self.perm]
         I = np.full((len(blocks), width), self.n, np.int32)
         J = np.full((len(blocks), width), self.n, np.int32)
-        src = np.full((len(blocks), width), self.m, np.int32)      # block-order position, m where padding
+        src = np.full((len(blocks), width), self.m, np.int32)      # user constraint index, m where padding
         rope = np.zeros((len(blocks), width), bool)
         for c, b in enumerate(blocks):
             seg = slice(b.offset, b.offset + b.size)
             I[c, :b.size], J[c, :b.size] = lo[seg], hi[seg]
-            src[c, :b.size] = np.arange(b.offset, b.offset + b.size)
+            src[c, :b.size] = self.perm[seg]
             rope[c, :b.size] = self.is_rope[self.perm[seg]]
         flat = np.concatenate([c * width + np.arange(b.size) for c, b in enumerate(blocks)]).astype(np.int32)
         all_rope = bool(self.is_rope.all())
