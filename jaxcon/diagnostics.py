@@ -1,10 +1,15 @@
 """Diagnostics: constraint violation, energies and drift, and `diagnose`, a report on a recorded trajectory
-(violation, energy, impulses) that names what went wrong."""
+(violation, energy, impulses) that names what went wrong.
+
+Each public function checks its arguments where it is called (shapes are known then), and computes in one
+jitted program: called eagerly, as in a notebook, a diagnostic compiles once per model and shape instead of
+dispatching, and compiling, each of its small operations one by one."""
 from __future__ import annotations
 
 import warnings
 from typing import Any, NamedTuple, Optional
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -34,14 +39,25 @@ def _masses(model: Model):
 def kinetic_energy(model: Model, v):
     """Kinetic energy (J) of the free particles. v: [..., n, dim]."""
     check_particles("kinetic_energy", model, "v", v)
+    return _kinetic_energy(model, v)
+
+
+@jax.jit
+def _kinetic_energy(model: Model, v):
     return 0.5 * jnp.sum(_masses(model) * jnp.sum(v * v, -1), -1)
 
 
 def energy(model: Model, x, v):
     """Total mechanical energy (J) of the free particles: kinetic + gravitational. x, v: [..., n, dim]."""
     check_particles("energy", model, "x", x)
+    check_particles("energy", model, "v", v)
+    return _energy(model, x, v)
+
+
+@jax.jit
+def _energy(model: Model, x, v):
     pe = -jnp.sum(_masses(model) * jnp.sum(x * model.gravity, -1), -1)
-    return kinetic_energy(model, v) + pe
+    return _kinetic_energy(model, v) + pe
 
 
 def energy_drift(model: Model, state, traj):
@@ -67,6 +83,11 @@ def violation(model: Model, x):
     """Relative constraint violation [..., m]: |d - L| / L for rods, max(d - L, 0) / L for ropes (a slack rope
     is not violated). Where L = 0 the absolute violation is returned. x: [..., n, dim]."""
     check_particles("violation", model, "x", x)
+    return _violation(model, x)
+
+
+@jax.jit
+def _violation(model: Model, x):
     t = model.topology
     d, _ = safe_norm(x[..., t.j, :] - x[..., t.i, :], axis=-1)
     err = d - model.rest_length
@@ -95,12 +116,20 @@ def contact_sizes(model: Model, partners=None):
     c = model.contact
     if c is None:
         return jnp.zeros((0,))
+    if c.has_grid:
+        partners = _grid_partners("contact_sizes", model, partners, None)
+    return _contact_sizes(model, partners)
+
+
+@jax.jit
+def _contact_sizes(model: Model, partners):
+    c = model.contact
     r = jnp.asarray(model.radius)
     parts = [jnp.tile(r, c.n_obstacles)]
     if c.n_pairs:
         parts.append(r[c.pairs.array[:, 0]] + r[c.pairs.array[:, 1]])
     if c.has_grid:
-        p = _grid_partners("contact_sizes", model, partners, None)
+        p = partners
         lead = p.shape[:-2]
         size = jnp.where(p >= 0, r[:, None] + r[jnp.maximum(p, 0)], 0).reshape(lead + (-1,))
         parts = [jnp.broadcast_to(a, lead + a.shape) for a in parts] + [size]
@@ -115,9 +144,16 @@ def penetration(model: Model, x, partners=None):
     contacts are the slots listed there (empty slots: 0)."""
     check_particles("penetration", model, "x", x)
     c = model.contact
-    x = jnp.asarray(x)
     if c is None:
-        return jnp.zeros(x.shape[:-2] + (0,), x.dtype)
+        return jnp.zeros(jnp.shape(x)[:-2] + (0,), jnp.result_type(x))
+    if c.has_grid:
+        partners = _grid_partners("penetration", model, partners, jnp.shape(x)[:-2])
+    return _penetration(model, jnp.asarray(x), partners)
+
+
+@jax.jit
+def _penetration(model: Model, x, partners):
+    c = model.contact
     r = jnp.asarray(model.radius, x.dtype)
     parts = []
     for p in range(c.n_planes):
@@ -130,7 +166,7 @@ def penetration(model: Model, x, partners=None):
         dist, _ = safe_norm(x[..., j, :] - x[..., i, :], axis=-1)
         parts.append(r[i] + r[j] - dist)
     if c.has_grid:
-        p = _grid_partners("penetration", model, partners, x.shape[:-2])
+        p = partners
         pc = jnp.maximum(p, 0)
         flat = pc.reshape(p.shape[:-2] + (-1,))                                     # [..., n K]
         xj = jnp.take_along_axis(x, flat[..., None], axis=-2).reshape(p.shape + (x.shape[-1],))
@@ -219,6 +255,27 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
             got = tuple(jnp.shape(getattr(state0, name)))
             if got != want:
                 raise ValueError(f"diagnose: `state0.{name}` has shape {got}, this model needs {want}")
+    grid = model.contact is not None and model.contact.has_grid
+    if grid and (traj.contact_partners is None or traj.contact_overflow is None):
+        raise ValueError("diagnose: this model has a neighbour grid, so `traj` needs its contact_partners and "
+                         "contact_overflow (as jc.rollout records them)")
+    if grid:
+        _grid_partners("diagnose", model, traj.contact_partners, (steps,))
+    d = _diagnosis(model, traj, state0)
+    known = concrete(d.overflow)
+    if grid and known is not None and np.any(np.asarray(known) > 0):
+        k = int(np.argmax(np.asarray(known) > 0))
+        warnings.warn(f"diagnose: the neighbour grid ran out of room in {int(np.sum(np.asarray(known) > 0))} "
+                      f"step(s), first at step {k} ({int(np.asarray(known)[k])} candidate pairs without a slot): "
+                      f"contacts may have been missed. Build the model with a larger `max_neighbours` (now "
+                      f"{model.contact.grid_k})", stacklevel=2)
+    return d
+
+
+@jax.jit
+def _diagnosis(model: Model, traj: Trajectory, state0: Optional[State]) -> Diagnosis:
+    """`diagnose` after its checks: one program."""
+    t = model.topology
     x, v = traj.x, traj.v
     viol = nan_max(violation(model, x), axis=-1) if t.m else jnp.zeros(x.shape[:1], x.dtype)
     e = energy(model, x, v)
@@ -238,9 +295,6 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
               & jnp.all(jnp.isfinite(traj.lam), axis=-1))
     ok = finite & (viol <= VIOLATION_LIMIT) & (gain <= ENERGY_LIMIT)
     grid = model.contact is not None and model.contact.has_grid
-    if grid and (traj.contact_partners is None or traj.contact_overflow is None):
-        raise ValueError("diagnose: this model has a neighbour grid, so `traj` needs its contact_partners and "
-                         "contact_overflow (as jc.rollout records them)")
     partners = traj.contact_partners if grid else None
     pen = penetration(model, x, partners)
     if pen.shape[-1]:
@@ -252,11 +306,4 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
     bad = ~ok
     first = jnp.where(jnp.any(bad), jnp.argmax(bad), -1)
     overflow = jnp.asarray(traj.contact_overflow) if grid else jnp.zeros(x.shape[:1], jnp.int32)
-    known = concrete(overflow)
-    if grid and known is not None and np.any(np.asarray(known) > 0):
-        k = int(np.argmax(np.asarray(known) > 0))
-        warnings.warn(f"diagnose: the neighbour grid ran out of room in {int(np.sum(np.asarray(known) > 0))} "
-                      f"step(s), first at step {k} ({int(np.asarray(known)[k])} candidate pairs without a slot): "
-                      f"contacts may have been missed. Build the model with a larger `max_neighbours` (now "
-                      f"{model.contact.grid_k})", stacklevel=2)
     return Diagnosis(viol, e, gain, bad, jnp.any(bad), first, pen, overflow, jnp.any(overflow > 0))

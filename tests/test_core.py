@@ -125,7 +125,9 @@ def test_rope_code_traced_only_when_ropes_exist():
 def test_strided_gather_and_compact_layouts_agree(solver):
     """The same cloth through the parity-split strided layout, through gathers in user order and through the
     compact table (every colour in one table, swept row by row in a scan): every solver gives the same
-    trajectory, in the user's particle order.
+    trajectory, in the user's particle order. (The compact table is compared here for Penalty and Direct, which
+    treat it as one block; the solvers that sweep it row by row are compared on both layouts by
+    `test_compact_layout_with_mixed_ropes_agrees`, on a cloth that also mixes ropes into the colours.)
 
     The layouts sum the same terms in different orders, so they agree to rounding, amplified by how the
     method conditions the problem (not by a machine: on an H100 the dense solve's impulses differed by 3.6e-11,
@@ -143,7 +145,9 @@ def test_strided_gather_and_compact_layouts_agree(solver):
     dt = 1 / 240
     _, a = jc.rollout(model, state, solver, dt, 40)
     tol = _layout_tolerances(model, solver, a, dt)
-    for other, ostate in ((general, gstate), (compact, cstate)):
+    others = ((general, gstate), (compact, cstate)) if isinstance(solver, (jc.Penalty, jc.Direct)) else (
+        (general, gstate),)
+    for other, ostate in others:
         _, b = jc.rollout(other, ostate, solver, dt, 40)
         for name in ("x", "v", "lam"):
             np.testing.assert_allclose(np.asarray(getattr(a, name)), np.asarray(getattr(b, name)), rtol=0,

@@ -96,6 +96,7 @@ def _double_pendulum_experiment():
 
 
 # ---- acceptance: default arguments from the nominal start (issue 11) -----------------------------------------
+@pytest.mark.optimised             # hundreds of iterations of one program
 def test_defaults_fit_a_chain_released_from_a_violated_start():
     """8 links of nominal 0.25 m, true lengths perturbed by up to 10%, true beta 0.35, released at 1 rad from
     positions laid out with the nominal lengths (every link starts up to 10% off its rest length), PGS(10)
@@ -137,6 +138,7 @@ def test_defaults_fit_double_pendulum_lengths_from_two_seconds():
     assert res.converged and res.horizons[-1] == 480
 
 
+@pytest.mark.optimised             # hundreds of iterations of one program
 def test_defaults_fit_cloth_rest_lengths_from_nominal():
     """16x16 cloth (930 edges), every edge's rest length perturbed by up to 5% (median 2.5% off), all particles
     observed for 0.5 s with 1 mm noise, data and fit with XPBD(1 iteration, 4 substeps). From the NOMINAL
