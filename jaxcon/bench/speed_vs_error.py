@@ -117,10 +117,8 @@ def _grid_pendulum(model, small):
 
 def _grid_chain(model, small):
     dt = 1 / 60
-    if small:
-        return [(PGS(4, substeps=16), dt), (Jacobi(20, substeps=16), dt), (XPBD(substeps=16), dt),
-                (_pen(1e3, model, dt), dt), (Direct(substeps=16), dt), (_soft(16, dt), dt), (RATTLE(10), 1 / 480),
-                (PGS(4, substeps=16, stabilization="split"), dt)]
+    if small:      # the test suite's run: every solver already has a point on the pendulum; each point compiles
+        return [(PGS(4, substeps=16), dt), (XPBD(substeps=16), dt), (Direct(substeps=16), dt)]
     g = []
     for sub in (16, 64, 256):
         g += [(PGS(4, substeps=sub), dt), (Jacobi(20, substeps=sub), dt), (XPBD(substeps=sub), dt),
