@@ -117,11 +117,11 @@ SHARDED = textwrap.dedent("""
 
     out = {"devices": jax.local_device_count()}
     model, state = jc.scenes.double_pendulum(angles=(0.5, 0.5))
-    for B in (8, 10):                       # 10 does not divide over 4 devices: padded, then cut
+    for B in (10,):     # 10 does not divide over 4 devices: padded, then cut (the 2-device mesh below divides it)
         rng = np.random.default_rng(1)
         states = jax.tree.map(lambda a: jnp.broadcast_to(a, (B,) + a.shape) + 0, state)
         states = states.replace(v=states.v + 0.1 * rng.normal(size=states.v.shape))
-        for solver in ((jc.PGS(), jc.Direct()) if B == 10 else (jc.PGS(),)):    # Direct (vmap-batched) once
+        for solver in (jc.PGS(), jc.Direct()):                                  # batch-minor, vmap-batched
             one = jc.batched_rollout(model, states, solver, 1 / 240, 12, devices=jax.devices()[:1])
             every = jc.batched_rollout(model, states, solver, 1 / 240, 12)
             key = f"{B}_{type(solver).__name__}"
@@ -131,7 +131,9 @@ SHARDED = textwrap.dedent("""
             out[key + "_shape"] = list(every[1].x.shape)
     mesh = jax.sharding.Mesh(np.array(jax.devices()[:2]), ("batch",))
     two = jc.batched_rollout(model, states, jc.PGS(), 1 / 240, 12, mesh=mesh)
+    one = jc.batched_rollout(model, states, jc.PGS(), 1 / 240, 12, devices=jax.devices()[:1])
     out["mesh_spans"] = len(two[0].x.sharding.device_set)
+    out["mesh_err"] = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(two)))
 
     # a batched fit runs data-parallel on every device and gives the single-device answer
     chain, c0 = jc.scenes.chain(4, 1.0, 0.4, angle=0.8)
@@ -157,11 +159,11 @@ def sharded():
 
 def test_batched_rollout_shards_the_batch_over_every_device(sharded):
     assert sharded["devices"] == 4
-    for B, solver in ((8, "PGS"), (10, "PGS"), (10, "Direct")):
+    for B, solver in ((10, "PGS"), (10, "Direct")):
         assert sharded[f"{B}_{solver}_err"] < 1e-12, sharded
         assert sharded[f"{B}_{solver}_spans"] == 4
         assert sharded[f"{B}_{solver}_shape"] == [B, 12, 3, 2]
-    assert sharded["mesh_spans"] == 2
+    assert sharded["mesh_spans"] == 2 and sharded["mesh_err"] < 1e-12
 
 
 def test_batched_fit_runs_on_every_device_and_matches_one_device(sharded):

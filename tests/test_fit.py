@@ -76,6 +76,7 @@ def test_fit_observed_subset_batch_and_sample_steps():
     np.testing.assert_allclose(res.model.gravity, truth.gravity, atol=1e-4)
 
 
+@pytest.mark.optimised             # up to 60 Levenberg-Marquardt iterations over 480 steps
 def test_fit_double_pendulum_lengths_with_windows():
     """A chaotic double pendulum observed for 2 s: fitted with windows of 0.25 s (multiple shooting)."""
     model, state, solver, obs, guess, true_lengths = _double_pendulum_experiment()
