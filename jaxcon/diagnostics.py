@@ -274,17 +274,17 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
 
 @jax.jit
 def _diagnosis(model: Model, traj: Trajectory, state0: Optional[State]) -> Diagnosis:
-    """`diagnose` after its checks: one program."""
+    """`diagnose` after its checks (the shapes, and a grid model's partners): one program."""
     t = model.topology
     x, v = traj.x, traj.v
-    viol = nan_max(violation(model, x), axis=-1) if t.m else jnp.zeros(x.shape[:1], x.dtype)
-    e = energy(model, x, v)
+    viol = nan_max(_violation(model, x), axis=-1) if t.m else jnp.zeros(x.shape[:1], x.dtype)
+    e = _energy(model, x, v)
     x0, v0 = (x[0], v[0]) if state0 is None else (state0.x, state0.v)
-    e0 = energy(model, x0, v0)
+    e0 = _energy(model, x0, v0)
     w = jnp.asarray(model.inv_mass)
     free = w > 0
     mass = jnp.sum(jnp.where(free, 1 / jnp.where(free, w, 1), 0))
-    ke0 = kinetic_energy(model, v0)
+    ke0 = _kinetic_energy(model, v0)
     # With contacts, particles may fall without any constraint: the height scale is also the initial extent.
     extent = 0 if model.contact is None else jnp.linalg.norm(jnp.max(x0, 0) - jnp.min(x0, 0)) + jnp.max(
         jnp.abs(x0))
@@ -296,9 +296,12 @@ def _diagnosis(model: Model, traj: Trajectory, state0: Optional[State]) -> Diagn
     ok = finite & (viol <= VIOLATION_LIMIT) & (gain <= ENERGY_LIMIT)
     grid = model.contact is not None and model.contact.has_grid
     partners = traj.contact_partners if grid else None
-    pen = penetration(model, x, partners)
+    if model.contact is None:
+        pen = jnp.zeros(x.shape[:1] + (0,), x.dtype)
+    else:
+        pen = _penetration(model, x, partners)
     if pen.shape[-1]:
-        size = contact_sizes(model, partners)
+        size = _contact_sizes(model, partners)
         ok = ok & jnp.all((pen <= PENETRATION_LIMIT * size) | (size <= 0), axis=-1)
         pen = jnp.max(pen, -1)
     else:
