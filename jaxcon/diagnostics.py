@@ -281,9 +281,7 @@ def _diagnosis(model: Model, traj: Trajectory, state0: Optional[State]) -> Diagn
     e = _energy(model, x, v)
     x0, v0 = (x[0], v[0]) if state0 is None else (state0.x, state0.v)
     e0 = _energy(model, x0, v0)
-    w = jnp.asarray(model.inv_mass)
-    free = w > 0
-    mass = jnp.sum(jnp.where(free, 1 / jnp.where(free, w, 1), 0))
+    mass = jnp.sum(_masses(model))
     ke0 = _kinetic_energy(model, v0)
     # With contacts, particles may fall without any constraint: the height scale is also the initial extent.
     extent = 0 if model.contact is None else jnp.linalg.norm(jnp.max(x0, 0) - jnp.min(x0, 0)) + jnp.max(
