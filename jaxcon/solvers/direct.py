@@ -13,7 +13,7 @@ from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
-from jaxcon.solvers.common import check_stabilization
+from jaxcon.solvers.common import check_stabilization, curvature_rate
 
 _METHODS = ("auto", "dense", "tridiagonal")
 
@@ -71,9 +71,10 @@ class Direct(Solver):
       regularisation: relative diagonal regularisation (constraint force mixing), >= 0, a leaf; values below
         1e3 machine epsilons are raised to that.
       stabilization: 'baumgarte' (default, above) or 'split' (static): split impulses. The same matrix is solved
-        for two right-hand sides, (J M^-1 J^T) lam = J v (no bias: lam is the physical impulse) and
-        (J M^-1 J^T) lam_p = (beta / h) C; v_p = -M^-1 J^T lam_p moves the positions of the substep,
-        x += h (v + v_p), and is discarded, so position correction adds no kinetic energy.
+        for two right-hand sides, (J M^-1 J^T) lam = J v + curvature (no position error: lam is the physical
+        impulse; the curvature term as in `PGS`) and (J M^-1 J^T) lam_p = C / h, the whole error;
+        v_p = -M^-1 J^T lam_p moves the positions of the substep, x += h (v + v_p), and is discarded, so
+        position correction adds no kinetic energy. `beta` is not used.
     """
 
     #: assembles its matrices in user particle order, so `jc.batched_rollout` batches it with `jax.vmap`
@@ -123,7 +124,7 @@ class Direct(Solver):
             v = sys.apply_gravity(v, h)
             xu, vu = L.particles_out(topo, x), L.particles_out(topo, v)  # [n, dim], user order
             solve = _chain_solve if tri else functools.partial(_dense_solve, topo=topo)
-            lam_u, dvs = solve(xu, vu, w, rest, beta / h, eps, split=split)
+            lam_u, dvs = solve(xu, vu, w, rest, (1 if split else beta) / h, eps, split=h if split else None)
             v = L.particles_in(topo, vu + dvs[0])
             move = v if not split else v + L.particles_in(topo, dvs[1])    # split: + the pseudo-velocity
             return x + h * move, v, L.constraints_in(topo, lam_u)
@@ -154,11 +155,11 @@ def _coupling(topo):
     return tuple(np.concatenate(x) for x in (a, b, p, s))
 
 
-def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, split=False):
+def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, split=None):
     """One dense solve of J W J^T lam = b. The matrix is assembled entry by entry from the pairs of
     constraints that share a particle (O(sum of squared degrees), not O(m^2 n)); the solve is O(m^3).
-    Returns (lam, velocity changes): one change (-W J^T lam) for Baumgarte, or, with `split`, the velocity
-    change and the pseudo-velocity, from one solve with two right-hand sides."""
+    Returns (lam, velocity changes): one change (-W J^T lam) for Baumgarte, or, with `split` (the (sub)step
+    h), the velocity change and the pseudo-velocity, from one solve with two right-hand sides."""
     i, j, m = topo.i, topo.j, topo.m
     dist, nrm = L.safe_norm(xu[j] - xu[i], axis=-1)          # [m], [m, dim]
     ok = ((w[i] + w[j]) > 0) & (dist > 0)
@@ -168,8 +169,7 @@ def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, split=False):
     both = ok[:, None] & ok[None, :]
     diag = jnp.diagonal(A)
     A = jnp.where(both, A, 0) + jnp.diag(jnp.where(ok, eps * diag, 1))
-    rel = jnp.sum((vu[j] - vu[i]) * nrm, -1)
-    b = _rhs(ok, rel, rate * (dist - rest), split)
+    b = _rhs(ok, nrm, dist, vu[j] - vu[i], rate * (dist - rest), split)
     lams = jnp.linalg.solve(A, b)                              # [m, 1 or 2]
 
     def change(lam):
@@ -179,13 +179,16 @@ def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, split=False):
     return lams[:, 0], tuple(change(lams[:, c]) for c in range(lams.shape[1]))
 
 
-def _rhs(ok, rel, correction, split):
-    """[m, 1] right-hand side J v + (beta / h) C, or with split impulses [m, 2]: J v and (beta / h) C apart."""
-    cols = [rel, correction] if split else [rel + correction]
+def _rhs(ok, nrm, dist, u, correction, split):
+    """[m, 1] right-hand side J v + (beta / h) C (u: the relative velocities [m, dim]), or with split impulses
+    (`split`: the (sub)step h) [m, 2]: J v plus the curvature of the motion (common.curvature_rate), and
+    (beta / h) C, apart."""
+    rel = jnp.sum(u * nrm, -1)
+    cols = [rel + curvature_rate(nrm, dist, u, split, axis=-1), correction] if split is not None else [rel + correction]
     return jnp.stack([jnp.where(ok, c, 0) for c in cols], -1)
 
 
-def _chain_solve(xu, vu, w, rest, rate, eps, *, split=False):
+def _chain_solve(xu, vu, w, rest, rate, eps, *, split=None):
     # Constraint k joins particle k and k+1; n_k points from k to k+1 (lam is orientation-independent).
     dist, nrm = L.safe_norm(xu[1:] - xu[:-1], axis=-1)        # [m], [m, dim]
     ok = ((w[:-1] + w[1:]) > 0) & (dist > 0)
@@ -196,8 +199,7 @@ def _chain_solve(xu, vu, w, rest, rate, eps, *, split=False):
     dl = jnp.concatenate([zero, off])
     du = jnp.concatenate([off, zero])
     d = jnp.where(ok, diag * (1 + eps), 1)
-    rel = jnp.sum((vu[1:] - vu[:-1]) * nrm, -1)
-    lams = tridiagonal_solve(dl, d, du, _rhs(ok, rel, rate * (dist - rest), split))
+    lams = tridiagonal_solve(dl, d, du, _rhs(ok, nrm, dist, vu[1:] - vu[:-1], rate * (dist - rest), split))
 
     def change(lam):
         p = nrm * lam[:, None]                                     # [m, dim]

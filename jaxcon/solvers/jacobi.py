@@ -20,9 +20,8 @@ from jaxcon.solvers.common import (
     contact_begin,
     contact_end,
     frames,
-    position_correction,
-    pseudo_velocities,
     restitution_phases,
+    split_position_pass,
     velocity_bias,
     warm_start,
 )
@@ -57,14 +56,15 @@ class Jacobi(Solver):
 
     Args:
       iterations: Jacobi iterations per (sub)step, static, >= 1.
-      beta: Baumgarte factor in [0, 1], a differentiable leaf.
+      beta: Baumgarte factor in [0, 1], a differentiable leaf; with split impulses only the contacts' push-out
+        rate.
       relaxation: scale of the summed impulse in (0, 2], a differentiable leaf; None: 1 / (largest number of
         constraints at one particle) of the model being solved, or mass splitting for a model with contacts
         (a fixed value there scales every rod and contact row alike).
       warm_start: start from the previous step's impulses (static).
       substeps: (sub)steps per step, static, >= 1.
-      stabilization: 'baumgarte' (default) or 'split' (static): split impulses as in `PGS`, the pseudo-velocity
-        solve by the same Jacobi iteration and relaxation.
+      stabilization: 'baumgarte' (default) or 'split' (static): split impulses as in `PGS`, the position
+        projection by Jacobi sweeps with the rods' relaxation (1 / largest degree by default).
     """
 
     iterations: int = static_field(default=20)
@@ -99,7 +99,8 @@ class Jacobi(Solver):
             v = sys.apply_gravity(v, h)
             fr = frames(sys, x)
             split = self.stabilization == "split"
-            bias = velocity_bias(topo, fr, jnp.zeros((), dtype) if split else beta, h)
+            bias = (velocity_bias(topo, fr, jnp.zeros((), dtype), h, v) if split
+                    else velocity_bias(topo, fr, beta, h))
             if self.warm_start:
                 v, lam = warm_start(sys, v, fr, lam_ws)
             else:
@@ -120,8 +121,7 @@ class Jacobi(Solver):
 
             v, lam = lax.fori_loop(0, self.iterations, iterate, (v, lam))
             if split:
-                vp = pseudo_velocities(sys, fr, position_correction(topo, fr, beta, h), self.iterations, relax)
-                return x + h * (v + vp), v, lam
+                return split_position_pass(sys, x + h * v, self.iterations, relax), v, lam
             return x + h * v, v, lam
 
         return substepped(substep, self.substeps, x, v, lam, dt)
@@ -142,8 +142,8 @@ class Jacobi(Solver):
             return functools.partial(contact_jacobi.iteration(sys, fr, bias, obs, pairs, relax), 0)
 
         v, lam, imp = restitution_phases(sys, v_free, obs, pairs, self.iterations, (v, lam, imp), run)
-        v_p = None
+        rods_pass = None
         if split and fr:
             rod_relax = jnp.asarray(1.0 / max_degree(topo), dtype) if relax is None else relax
-            v_p = pseudo_velocities(sys, fr, position_correction(topo, fr, beta, h), self.iterations, rod_relax)
-        return contact_end(sys, x, v, v_free, obs, pairs, imp, h, v_p), v, (lam, imp)
+            rods_pass = lambda x: split_position_pass(sys, x, self.iterations, rod_relax)  # noqa: E731
+        return contact_end(sys, x, v, v_free, obs, pairs, imp, h, rods_pass=rods_pass), v, (lam, imp)

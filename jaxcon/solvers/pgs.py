@@ -20,9 +20,8 @@ from jaxcon.solvers.common import (
     contact_begin,
     contact_end,
     frames,
-    position_correction,
-    pseudo_velocities,
     restitution_phases,
+    split_position_pass,
     velocity_bias,
     warm_start,
 )
@@ -43,7 +42,8 @@ class PGS(Solver):
 
     Args:
       iterations: sweeps over all colours per (sub)step, static, >= 1.
-      beta: Baumgarte factor in [0, 1], a differentiable leaf (0.1 to 0.3 is usual).
+      beta: Baumgarte factor in [0, 1], a differentiable leaf (0.1 to 0.3 is usual); with split impulses only
+        the contacts' push-out rate.
       warm_start: start each step from the previous step's impulses (static).
       substeps: (sub)steps per step, static, >= 1.
       warm_start_factor: scale in [0, 1] of the warm-start impulses, a differentiable leaf. 1 is the textbook
@@ -59,13 +59,17 @@ class PGS(Solver):
         adjoint sweeps do not converge: the gradient is then meaningless), nor for under-converged sweeps on
         long horizons (20-link chain, 50 sweeps, 240 steps: 60% off the unrolled gradient). Ropes (an
         inequality) are refused with a clear error.
-      stabilization: 'baumgarte' (default, the textbook method above) or 'split' (static): split impulses
-        (Catto's pseudo-velocities, Box2D v2's and Bullet's split impulse). The velocity sweeps then run with no
-        Baumgarte bias (rods: J v = 0; a slack rope keeps its speculative C / h, which is not a correction), and
-        a second set of `iterations` sweeps from v_p = 0 solves J v_p = -(beta / h) C for rods and stretched
-        ropes (pseudo-impulses >= 0 for ropes, not warm-started). Positions advance by x += h (v + v_p) and v_p
-        is discarded: position error is corrected without turning into kinetic energy. lam is the velocity
-        impulse only, the physical constraint impulse. Not with `implicit=True`.
+      stabilization: 'baumgarte' (default, the textbook method above) or 'split' (static): split impulses,
+        position error kept out of the velocities (Box2D v2's position solver, Cline and Pai's
+        post-stabilisation). The velocity sweeps see no position error: rods and taut ropes ask for
+        n . (v_j - v_i) = -(the rate at which rotating about each other opens them,
+        `common.curvature_rate`), so the step x += h v moves along the chord and keeps C(x + h v) = C(x) to
+        second order (J v = 0 would move along the tangent and lose energy to the next step's projection);
+        a slack rope keeps its speculative C / h. Then `iterations` nonlinear Gauss-Seidel sweeps project the
+        positions onto the rest lengths (a rope only while stretched), velocities untouched: the whole error
+        goes in one step without turning into kinetic energy, so `beta` does not act on rods and ropes (it is
+        still the contacts' push-out rate). lam is the velocity impulse only, the physical constraint
+        impulse. Not with `implicit=True`.
       warm_start_gradient: if False, no gradient flows through the warm-start impulses (static). The forward
         pass is unchanged and the gradient becomes a truncated one. Measured on a swinging 16x16 cloth it does
         not stop long-horizon gradient growth (that growth is the physics: the motion is chaotic, and a
@@ -98,6 +102,10 @@ class PGS(Solver):
     supports_contacts = True
     supports_grid = True
 
+    def _factor(self, dtype):
+        factor = self.warm_start_factor
+        return factor if isinstance(factor, (int, float)) else jnp.asarray(factor, dtype)
+
     def _substep(self, sys, x, v, lam_ws, h):
         if sys.contact is not None:
             return self._substep_contacts(sys, x, v, lam_ws, h)
@@ -107,11 +115,9 @@ class PGS(Solver):
         v = sys.apply_gravity(v, h)
         fr = frames(sys, x)
         split = self.stabilization == "split"
-        bias = velocity_bias(topo, fr, jnp.zeros((), dtype) if split else beta, h)
+        bias = velocity_bias(topo, fr, jnp.zeros((), dtype), h, v) if split else velocity_bias(topo, fr, beta, h)
         if self.warm_start:
-            factor = self.warm_start_factor
-            factor = factor if isinstance(factor, (int, float)) else jnp.asarray(factor, dtype)
-            v, lam = warm_start(sys, v, fr, lam_ws, factor, self.warm_start_gradient)
+            v, lam = warm_start(sys, v, fr, lam_ws, self._factor(dtype), self.warm_start_gradient)
         else:
             lam = tuple(jnp.zeros_like(f.C) for f in fr)
 
@@ -124,8 +130,7 @@ class PGS(Solver):
             return self._implicit(sys, x, v, lam, fr, bias, h)
         v, lam = lax.fori_loop(0, self.iterations, sweep, (v, lam))
         if split:
-            vp = pseudo_velocities(sys, fr, position_correction(topo, fr, beta, h), self.iterations)
-            return x + h * (v + vp), v, lam
+            return split_position_pass(sys, x + h * v, self.iterations), v, lam
         return x + h * v, v, lam
 
     def _substep_contacts(self, sys, x, v, lam_ws, h):
@@ -136,11 +141,9 @@ class PGS(Solver):
         topo, cs = sys.topology, sys.contact
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
-        factor = self.warm_start_factor
-        factor = factor if isinstance(factor, (int, float)) else jnp.asarray(factor, dtype)
         split = self.stabilization == "split"
         v_free, v, fr, bias, obs, pairs, lam, imp = contact_begin(
-            sys, x, v, lam_ws, beta, h, split, self.warm_start, factor, self.warm_start_gradient)
+            sys, x, v, lam_ws, beta, h, split, self.warm_start, self._factor(dtype), self.warm_start_gradient)
         block_sweep = self._block_sweep(topo, fr, bias)
 
         def sweeps(obs, pairs):
@@ -152,9 +155,8 @@ class PGS(Solver):
             return sweep
 
         v, lam, imp = restitution_phases(sys, v_free, obs, pairs, self.iterations, (v, lam, imp), sweeps)
-        v_p = (pseudo_velocities(sys, fr, position_correction(topo, fr, beta, h), self.iterations)
-               if split and fr else None)
-        return contact_end(sys, x, v, v_free, obs, pairs, imp, h, v_p, passes=None), v, (lam, imp)
+        rods_pass = (lambda x: split_position_pass(sys, x, self.iterations)) if split and fr else None
+        return contact_end(sys, x, v, v_free, obs, pairs, imp, h, passes=None, rods_pass=rods_pass), v, (lam, imp)
 
     @staticmethod
     def _block_sweep(topo, fr, bias):

@@ -11,7 +11,7 @@ from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact, contact_position
-from jaxcon.solvers.common import clamp_ropes
+from jaxcon.solvers.common import position_sweep
 
 
 @pytree_dataclass
@@ -65,40 +65,6 @@ class XPBD(Solver):
 
     supports_contacts = True
 
-    @staticmethod
-    def _colour_sweep(sys, alpha):
-        """One Gauss-Seidel pass over the rod and rope colours: (_, (p, mu)) -> (p, mu)."""
-        topo = sys.topology
-        w_pairs = []
-        for blk in topo.blocks:
-            wi, wj = L.gather_pair(topo, blk, sys.w)
-            wi, wj = wi[0], wj[0]
-            w_pairs.append((wi, wj, L.safe_reciprocal(wi + wj + alpha)))
-
-        def colour(p, blk, rows):
-            rest, wi, wj, k, mu = rows
-            pi, pj = L.gather_pair(topo, blk, p)
-            d = pj - pi
-            # n (new - mu) with n = d / |d| is written as d times one scalar per constraint, built from
-            # |d|^2 and 1/|d| (rods need no clamp: 1/|d| is 0 at zero length). `safe_length` keeps |d|^2
-            # a reduction: on CPU, XLA stores d and |d|^2 as arrays before it, so the update below reads
-            # them instead of recomputing the projection per particle. Written as an elementwise dot
-            # (L.dot0), the update kernels were split and re-summed every colour: 8 to 16x slower
-            # on the 64x64 cloth.
-            dist, inv = L.safe_length(d)
-            dmu = (dist - rest - alpha * mu) * k
-            new = clamp_ropes(blk, mu + dmu * (inv > 0).astype(inv.dtype))
-            q = d * (((new - mu) if blk.has_rope else dmu) * inv)
-            return L.add_pair(topo, blk, p, wi * q, -wj * q), new
-
-        def sweep(_, carry):
-            p, mu = carry
-            mu = list(mu)
-            for c, (blk, rest, (wi, wj, k)) in enumerate(zip(topo.blocks, sys.rest, w_pairs)):
-                p, mu[c] = L.each_colour(blk, colour, p, (rest, wi, wj, k, mu[c]))
-            return p, tuple(mu)
-        return sweep
-
     def _step(self, sys, x, v, lam, dt):
         if sys.contact is not None:
             return self._step_contacts(sys, x, v, dt)
@@ -106,7 +72,7 @@ class XPBD(Solver):
         dtype = x.dtype
         h = dt / self.substeps
         alpha = jnp.asarray(self.compliance, dtype) / (h * h)
-        sweep = self._colour_sweep(sys, alpha)
+        sweep = position_sweep(sys, sys.rest, alpha)
 
         def predict(x, v):
             return x + h * sys.apply_gravity(v, h)
@@ -132,7 +98,7 @@ class XPBD(Solver):
         topo, cs = sys.topology, sys.contact
         dtype = x.dtype
         h = dt / self.substeps
-        sweep_colours = self._colour_sweep(sys, jnp.asarray(self.compliance, dtype) / (h * h))
+        sweep_colours = position_sweep(sys, sys.rest, jnp.asarray(self.compliance, dtype) / (h * h))
         zero_b = tuple(jnp.zeros(b.shape, dtype) for b in topo.blocks)
         zero_c = contact.zero_impulses(topo, cs.ct, dtype)
 
