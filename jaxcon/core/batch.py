@@ -146,9 +146,10 @@ CPU_CHUNK = 1024
 
 def layout_generic(solver, model=None) -> bool:
     """Whether `solver` only uses the internal layout, so it runs on the batch-minor topology. `Direct`
-    assembles its matrices in user order, and contacts gather pairs over the particle axis; both are batched
-    with `jax.vmap` instead."""
-    return getattr(solver, "batch_minor", True) and (model is None or model.contact is None)
+    assembles its matrices in user order, contacts gather pairs over the particle axis, and a hub's star
+    (`topology.star_colouring`) sums over its spokes; all three are batched with `jax.vmap` instead."""
+    return getattr(solver, "batch_minor", True) and (model is None or (model.contact is None
+                                                                       and not model.topology.has_stars))
 
 
 def _minor(model, states, solver, dt, steps, save_every):

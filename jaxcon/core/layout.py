@@ -45,13 +45,20 @@ def per_particle_out(topo: Topology, a):
 
 # ---- constraints -------------------------------------------------------------------------------------------
 def constraints_in(topo: Topology, a):
-    """[..., m] in the user's constraint order -> tuple of [..., *block.shape], one per block (a compact
-    topology's table is zero at its padding)."""
-    if topo.compact:
-        return (jnp.take(a, topo.blocks[0].src.array, axis=-1, mode="fill", fill_value=0),)
-    a = jnp.take(a, topo.perm, axis=-1) if topo.m else a
-    lead = a.shape[:-1]
-    return tuple(a[..., b.offset: b.offset + b.size].reshape(lead + b.shape) for b in topo.blocks)
+    """[..., m] in the user's constraint order -> tuple of [..., *block.shape], one per block (a table's or a
+    star block's padding is zero)."""
+    if not (topo.compact or topo.has_stars):
+        a = jnp.take(a, topo.perm, axis=-1) if topo.m else a
+        lead = a.shape[:-1]
+        return tuple(a[..., b.offset: b.offset + b.size].reshape(lead + b.shape) for b in topo.blocks)
+    out = []
+    for b in topo.blocks:
+        if b.table or b.star:
+            out.append(jnp.take(a, b.src.array, axis=-1, mode="fill", fill_value=0))
+        else:
+            seg = jnp.take(a, topo.perm[b.offset: b.offset + b.size], axis=-1)
+            out.append(seg.reshape(seg.shape[:-1] + b.shape))
+    return tuple(out)
 
 
 def constraints_concat(topo: Topology, blocks, like=None):
@@ -61,11 +68,13 @@ def constraints_concat(topo: Topology, blocks, like=None):
         if like is None:
             raise ValueError("model has no constraints")
         return jnp.zeros(like.shape[: like.ndim - 1 - len(topo.view)] + (0,), like.dtype)
-    if topo.compact:
-        (x,), (b,) = blocks, topo.blocks
-        return jnp.take(x.reshape(x.shape[:-2] + (-1,)), b.flat.array, axis=-1)
-    flat = [x.reshape(x.shape[: x.ndim - len(b.shape)] + (b.size,)) for x, b in zip(blocks, topo.blocks)]
-    return jnp.concatenate(flat, axis=-1)
+    flat = []
+    for x, b in zip(blocks, topo.blocks):
+        if b.table or b.star:
+            flat.append(jnp.take(x.reshape(x.shape[:-2] + (-1,)), b.flat.array, axis=-1))
+        else:
+            flat.append(x.reshape(x.shape[: x.ndim - len(b.shape)] + (b.size,)))
+    return flat[0] if len(flat) == 1 else jnp.concatenate(flat, axis=-1)
 
 
 def constraints_unpermute(topo: Topology, a):
@@ -187,9 +196,20 @@ def _indices(block):
     return np.concatenate([block.i_idx.array, block.j_idx.array], axis=-1)
 
 
+def _star_real(topo, block):
+    """[H, S] bool: the spokes of a star block that are constraints (not padding)."""
+    return block.j_idx.array < topo.n
+
+
 def gather_pair(topo: Topology, block: Block, x):
     """Endpoint values of a block: x[..., *view] -> (x_i, x_j), each [..., *block.shape]. A table block or a
-    `Row` reads 0 at its padding."""
+    `Row` reads 0 at its padding; a star block gives its hubs as x_i, the other particles as x_j, both 0 at
+    its padding (so a padding spoke has no direction, no mass and no effective mass)."""
+    if getattr(block, "star", False):
+        flat = _flat(topo, x)
+        xj = jnp.take(flat, block.j_idx.array, axis=-1, mode="fill", fill_value=0)        # [..., H, S]
+        xi = jnp.take(flat, block.hub.array, axis=-1)[..., None]
+        return jnp.where(_star_real(topo, block), xi, 0), xj
     if block.table or isinstance(block, Row):
         both = jnp.take(_flat(topo, x), _indices(block), axis=-1, mode="fill", fill_value=0)   # one gather
         return jnp.split(both, 2, axis=-1)
@@ -206,8 +226,8 @@ def scatter_pair(topo: Topology, block: Block, p_i, p_j):
     Each particle is an endpoint of at most one constraint of a strided or gather block, so this is a pad
     (strided blocks) or a gather (gather blocks). A table block (every colour at once) sums with a scatter-add.
     """
-    if block.table or isinstance(block, Row):
-        lead = p_i.shape[: p_i.ndim - (2 if block.table else 1)]
+    if block.table or isinstance(block, Row) or getattr(block, "star", False):
+        lead = p_i.shape[: p_i.ndim - (2 if block.table or getattr(block, "star", False) else 1)]
         return add_pair(topo, block, jnp.zeros(lead + topo.view, p_i.dtype), p_i, p_j)
     if block.strided:
         return _box_pad(p_i, block.i_box, topo.view) + _box_pad(p_j, block.j_box, topo.view)
@@ -220,10 +240,54 @@ def scatter_pair(topo: Topology, block: Block, p_i, p_j):
 def add_pair(topo: Topology, block: Block, v, p_i, p_j):
     """v + `scatter_pair(topo, block, p_i, p_j)`. Table blocks and rows add in place (a scatter-add that drops
     the padding); a table block may hold a particle in several rows, and the contributions sum."""
+    if getattr(block, "star", False):        # each hub takes the sum of its spokes, each other particle its own
+        flat = _flat(topo, v).at[..., block.hub.array].add(jnp.sum(p_i, axis=-1))
+        return flat.at[..., block.j_idx.array].add(p_j, mode="drop").reshape(v.shape)
     if not (block.table or isinstance(block, Row)):
         return v + scatter_pair(topo, block, p_i, p_j)
     flat = _flat(topo, v).at[..., _indices(block)].add(jnp.concatenate([p_i, p_j], axis=-1), mode="drop")
     return flat.reshape(v.shape)
+
+
+def block_solve(topo: Topology, block, f, rhs, alpha=0.0):
+    """The multiplier changes of one colour's rows whose right-hand side is `rhs` [*block.shape]: rhs * f.k,
+    each row on its own, for every block but a star block, whose rows share their hub and are solved together.
+    `f` has n [dim, *shape] (unit normals from the first particle to the second), wi, wj (inverse masses) and k;
+    `alpha` is added to every row's diagonal (XPBD's compliance / h^2).
+
+    A star's rows solve (D + w_p N N^T) dlam = rhs, D = diag(w_o + alpha) (w_o the other particles', w_p the
+    hub's inverse mass, N the rows' normals): with u = w_p N^T dlam, the change of the hub's velocity (or
+    position), (I + w_p N^T D^-1 N) u = w_p N^T D^-1 rhs is a dim x dim system per hub, and dlam = D^-1 (rhs -
+    N u). D is regularised by max(1e-6, 1e3 eps) (w_p + w_o), which keeps a row to a fixed particle (w_o = 0)
+    solvable; the sweeps converge to the unregularised solution all the same (an inexact block solve changes
+    how fast Gauss-Seidel converges, not where to)."""
+    if not getattr(block, "star", False):
+        return rhs * f.k
+    dim = f.n.shape[0]
+    real = _star_real(topo, block)
+    wp = f.wi[..., :1]                                       # the hub's inverse mass (spoke 0 is always real)
+    reg = max(1e-6, 1e3 * float(jnp.finfo(rhs.dtype).eps))
+    inv_d = jnp.where(real, safe_reciprocal(f.wj + alpha + reg * (wp + f.wj)), 0)
+    a = f.n * inv_d                                          # [dim, H, S]
+    g = jnp.sum(a * rhs, axis=-1)                            # [dim, H]
+    M = [[(a_ == b_) + wp[..., 0] * jnp.sum(a[a_] * f.n[b_], axis=-1) for b_ in range(dim)] for a_ in range(dim)]
+    u = wp[..., 0] * _small_solve(M, g)                     # [dim, H]
+    return (rhs - jnp.sum(f.n * u[..., None], axis=0)) * inv_d
+
+
+def _small_solve(M, g):
+    """Solve M u = g for a symmetric positive definite 2 x 2 or 3 x 3 M given as nested lists of [H] arrays, g
+    [dim, H], by Cramer's rule (elementwise, so it fuses; det M >= 1 here, M being I plus a PSD matrix)."""
+    if len(M) == 2:
+        (a, b), (_, d) = M
+        det = a * d - b * b
+        return jnp.stack([d * g[0] - b * g[1], a * g[1] - b * g[0]]) / det
+    (a, b, c), (_, d, e), (_, _, f) = M
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * A + b * B + c * C
+    return jnp.stack([A * g[0] + B * g[1] + C * g[2], B * g[0] + D * g[1] + E * g[2],
+                      C * g[0] + E * g[1] + F * g[2]]) / det
 
 
 # ---- guarded geometry --------------------------------------------------------------------------------------

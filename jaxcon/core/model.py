@@ -10,7 +10,7 @@ from jaxcon.core import layout as _layout
 from jaxcon.core.checks import check_real, check_scalar, check_shape, check_values, resolve_dtype
 from jaxcon.core.contact import ContactTopology, check_max_neighbours, contact_pairs, uses_grid
 from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
-from jaxcon.core.topology import Topology, check_colouring, greedy_colouring, parse_pairs as _pairs
+from jaxcon.core.topology import Topology, check_colouring, parse_pairs as _pairs, star_colouring
 
 Array = Any
 
@@ -333,7 +333,7 @@ def build(
     rest = _rest_lengths(rest_lengths, positions, x, i, j, dtype)
     v = _velocities(velocities, x)
     g = _gravity("build", gravity, dim, dtype)
-    topo = Topology(n, dim, i, j, is_rope, _colouring(colouring, i, j, n), _view(grid_shape, n), layout)
+    topo = _topology(n, dim, i, j, is_rope, colouring, grid_shape, layout)
     contact = dict(radius=radius, planes=planes, spheres=spheres, friction=friction, restitution=restitution,
                    threshold=restitution_threshold)
     return _with_contacts(Model(inv_mass, rest, g, topo), State(x, v, jnp.zeros(m, dtype)), contact_pairs_,
@@ -528,15 +528,24 @@ def _gravity(owner, gravity, dim, dtype):
     return jnp.asarray(gravity).astype(dtype)
 
 
+def _topology(n, dim, i, j, is_rope, colouring, grid_shape, layout) -> Topology:
+    """`build`'s static topology: the colouring (checked, or the default with hub stars) and the layout."""
+    colour, star = _colouring(colouring, i, j, n)
+    return Topology(n, dim, i, j, is_rope, colour, _view(grid_shape, n), layout, star=star)
+
+
 def _colouring(colouring, i, j, n):
+    """(colour [m], star [m]): the default colouring with stars around hubs (`star_colouring`), or the user's
+    (checked; no stars)."""
     if colouring is None:
-        return greedy_colouring(i, j, n)
+        star, colour = star_colouring(i, j, n)
+        return colour, star
     colour = np.asarray(colouring)
     check_shape("build", "colouring", colour, (len(i),))
     if colour.dtype.kind not in "iu" or (colour < 0).any():
         raise ValueError("build: `colouring` must hold non-negative integers")
     check_colouring(i, j, colour, n)
-    return colour
+    return colour, None
 
 
 def _view(grid_shape, n):

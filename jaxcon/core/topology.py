@@ -50,6 +50,56 @@ def greedy_colouring(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
     return colour
 
 
+#: A particle with at least this many constraints is a hub: its constraints are solved together as a *star*
+#: (`star_colouring`). Below it Gauss-Seidel over single constraints is stable (a cloth particle has at most 8).
+STAR_MIN_DEGREE = 9
+
+
+def star_colouring(i: np.ndarray, j: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The default colouring: (star [m], colour [m]).
+
+    Hubs (particles with at least `STAR_MIN_DEGREE` constraints), most constraints first, each take the
+    constraints at them that no earlier hub took, one per other particle (a duplicated rod stays outside): a
+    *star*, whose constraints share only the hub and are solved together, exactly (`layout.block_solve`).
+    star[k] is constraint k's star (stars numbered from 0), or -1. Stars are coloured greedily (two stars that
+    share a particle get different colours) and the other constraints greedily among themselves
+    (`greedy_colouring`, in the given order); the two colour sets are numbered independently.
+
+    Why: Gauss-Seidel one constraint at a time around a hub has an error operator with large complex
+    eigenvalues. XPBD's v = (p - x) / h feeds the unconverged part of each substep into the next one's
+    prediction (the constraint error follows e' = G (2 e - e_prev)), and PGS's warm start feeds it through
+    the next step's impulses: from about 9 spokes (XPBD) and 32 (PGS(10)) that recurrence grows, and a hub of
+    spokes at rest length, released under gravity, turned rounding error into 1e49 m (XPBD, 16 spokes). A star
+    solved exactly has no such error: the recurrence decays at the Baumgarte rate (docs/hard-cases.md)."""
+    i, j = np.asarray(i, np.int64), np.asarray(j, np.int64)
+    m = len(i)
+    star = np.full(m, -1, np.int64)
+    deg = np.bincount(np.concatenate([i, j]), minlength=n)
+    hubs = [int(p) for p in np.argsort(-deg, kind="stable") if deg[p] >= STAR_MIN_DEGREE]
+    members = []
+    for p in hubs:
+        ks = np.nonzero(((i == p) | (j == p)) & (star < 0))[0]
+        other = np.where(i[ks] == p, j[ks], i[ks])
+        _, first = np.unique(other, return_index=True)          # one constraint per other particle
+        ks = ks[np.sort(first)]
+        if len(ks) >= 2:
+            star[ks] = len(members)
+            members.append((p, ks))
+    colour = np.full(m, -1, np.int64)
+    used = [set() for _ in range(n)]
+    for s_id, (p, ks) in enumerate(members):
+        parts = np.unique(np.concatenate([i[ks], j[ks]]))
+        c = 0
+        while any(c in used[q] for q in parts):
+            c += 1
+        colour[ks] = c
+        for q in parts:
+            used[q].add(c)
+    rest = star < 0
+    colour[rest] = greedy_colouring(i[rest], j[rest], n)
+    return star, colour
+
+
 def check_colouring(i: np.ndarray, j: np.ndarray, colour: np.ndarray, n: int) -> None:
     """Raise ValueError unless no two constraints of the same colour share a particle."""
     for c in np.unique(colour):
@@ -142,7 +192,9 @@ class Block:
     all_rope: bool
     table: bool = False           # compact layout: i_idx, j_idx, src (user constraint index, m where
     #                               padding) are [colours, width], the indices padded with particle index n
-    flat: Optional[StaticArray] = None   # table: [size] flat positions of the real entries, in block order
+    flat: Optional[StaticArray] = None   # table, star: [size] flat positions of the real entries, in block order
+    star: bool = False            # stars of one colour: hub [H] and j_idx, src [H, S] (the other particles and
+    hub: Optional[StaticArray] = None    # user constraint indices of each star's spokes, padded with n and m)
 
     @property
     def strided(self) -> bool:
@@ -160,7 +212,7 @@ class Topology:
     small models with several colours: `COMPACT_MIN_COLOURS`, `COMPACT_MAX_WIDTH`), 'compact' or 'unrolled'.
     """
 
-    def __init__(self, n, dim, i, j, is_rope, colour, view, layout="auto"):
+    def __init__(self, n, dim, i, j, is_rope, colour, view, layout="auto", star=None):
         self.n = int(n)
         self.dim = int(dim)
         self.i = np.asarray(i, np.int64)
@@ -169,7 +221,10 @@ class Topology:
         self.colour = np.asarray(colour, np.int64)
         self.view = tuple(int(s) for s in view)    # the particle grid's shape (internal order: see pos / order)
         self.m = len(self.i)
-        for a in (self.i, self.j, self.is_rope, self.colour):
+        # star[k]: constraint k's star (`star_colouring`), -1 if it has none; a star's colour is its own colour set
+        self.star = np.full(self.m, -1, np.int64) if star is None else np.asarray(star, np.int64)
+        self.has_stars = bool((self.star >= 0).any())
+        for a in (self.i, self.j, self.is_rope, self.colour, self.star):
             a.setflags(write=False)
         self.has_ropes = bool(self.is_rope.any())
         self.has_rods = bool((~self.is_rope).any())
@@ -183,7 +238,7 @@ class Topology:
         self.layout = "compact" if self.compact else "unrolled"
         self._key = (
             self.n, self.dim, self.view, self.i.tobytes(), self.j.tobytes(), self.is_rope.tobytes(),
-            self.colour.tobytes(), self.layout,
+            self.colour.tobytes(), self.layout, self.star.tobytes(),
         )
         self._hash = hash(self._key)
 
@@ -191,17 +246,26 @@ class Topology:
 
     @property
     def n_colours(self) -> int:
-        return int(self.blocks[0].shape[0]) if self.compact else len(self.blocks)
+        return sum(int(b.shape[0]) if b.table else 1 for b in self.blocks)
 
     def _small(self) -> bool:
-        sizes = np.bincount(np.unique(self.colour, return_inverse=True)[1])
+        plain = self.colour[self.star < 0]
+        if not len(plain):
+            return False
+        sizes = np.bincount(np.unique(plain, return_inverse=True)[1])
         return len(sizes) >= COMPACT_MIN_COLOURS and int(sizes.max()) <= COMPACT_MAX_WIDTH
 
     def _compact(self):
-        """Replace the blocks by one table block: row c holds colour c's constraints in the order of the
-        unrolled layout without the parity split, padded to the widest colour with particle index n."""
+        """Replace the colours' blocks by one table block (stars keep theirs, before it): row c holds colour c's
+        constraints in the order of the unrolled layout without the parity split, padded to the widest colour
+        with particle index n."""
         self.pos = self.order = None
-        blocks, self.perm, self.inv_perm = self._build_blocks(None)
+        all_blocks, self.perm, self.inv_perm = self._build_blocks(None)
+        stars = tuple(b for b in all_blocks if b.star)
+        blocks = [b for b in all_blocks if not b.star]
+        if not blocks:                       # stars only: nothing to put in a table
+            self.blocks = stars
+            return
         width = max(b.size for b in blocks)
         lo, hi = np.minimum(self.i, self.j)[self.perm], np.maximum(self.i, self.j)[self.perm]
         I = np.full((len(blocks), width), self.n, np.int32)
@@ -214,10 +278,12 @@ class Topology:
             src[c, :b.size] = self.perm[seg]
             rope[c, :b.size] = self.is_rope[self.perm[seg]]
         flat = np.concatenate([c * width + np.arange(b.size) for c, b in enumerate(blocks)]).astype(np.int32)
-        all_rope = bool(self.is_rope.all())
-        mixed = StaticArray(rope) if self.has_ropes and not all_rope else None
-        self.blocks = (Block(0, self.m, I.shape, None, None, StaticArray(I), StaticArray(J), StaticArray(src), mixed,
-                             all_rope, table=True, flat=StaticArray(flat)),)
+        plain = self.is_rope[self.star < 0]
+        all_rope = bool(plain.all())
+        mixed = StaticArray(rope) if plain.any() and not all_rope else None
+        offset = blocks[0].offset
+        self.blocks = stars + (Block(offset, self.m - offset, I.shape, None, None, StaticArray(I), StaticArray(J),
+                                     StaticArray(src), mixed, all_rope, table=True, flat=StaticArray(flat)),)
         self.compact = True
 
     @property
@@ -227,7 +293,7 @@ class Topology:
             return self
         if getattr(self, "_unrolled", None) is None:
             self._unrolled = Topology(self.n, self.dim, self.i, self.j, self.is_rope, self.colour, self.view,
-                                      layout="unrolled")
+                                      layout="unrolled", star=self.star)
         return self._unrolled
 
     def _choose_layout(self):
@@ -261,8 +327,13 @@ class Topology:
         if pos is not None:
             lo, hi = pos[lo], pos[hi]
         order, blocks, offset = [], [], 0
-        for c in np.unique(self.colour):
-            ks = np.nonzero(self.colour == c)[0]
+        for blk, ks in self._star_blocks(pos):
+            blocks.append(dataclasses.replace(blk, offset=offset))
+            order.append(ks)
+            offset += len(ks)
+        plain = self.star < 0
+        for c in np.unique(self.colour[plain]):
+            ks = np.nonzero((self.colour == c) & plain)[0]
             ks = ks[np.argsort(lo[ks], kind="stable")]
             ci = np.stack(np.unravel_index(lo[ks], self.view), -1)
             cj = np.stack(np.unravel_index(hi[ks], self.view), -1)
@@ -297,6 +368,47 @@ class Topology:
         inv_perm.setflags(write=False)
         return tuple(blocks), perm, inv_perm
 
+    def _star_blocks(self, pos):
+        """One block per star colour (user particle p at internal flat position pos[p]): [(Block with offset 0,
+        the user constraint indices of its spokes in block order)]. Spokes run from the hub to the other
+        particle, in order of that particle."""
+        out = []
+        if not self.has_stars:
+            return out
+        to_internal = np.arange(self.n) if pos is None else np.asarray(pos)
+        stars = np.unique(self.star[self.star >= 0])
+        colour_of = {int(k): int(self.colour[np.argmax(self.star == k)]) for k in stars}
+        for c in sorted(set(colour_of.values())):
+            members = [int(k) for k in stars if colour_of[int(k)] == c]
+            spokes, hubs = [], []
+            for k in members:
+                ks = np.nonzero(self.star == k)[0]
+                ends = np.concatenate([self.i[ks], self.j[ks]])
+                hub = int(np.bincount(ends).argmax()) if len(ks) > 1 else int(self.i[ks[0]])
+                other = np.where(self.i[ks] == hub, self.j[ks], self.i[ks])
+                o = np.argsort(other, kind="stable")
+                spokes.append((ks[o], other[o]))
+                hubs.append(hub)
+            H, S = len(members), max(len(ks) for ks, _ in spokes)
+            J = np.full((H, S), self.n, np.int32)
+            src = np.full((H, S), self.m, np.int32)
+            rope = np.zeros((H, S), bool)
+            for r, (ks, other) in enumerate(spokes):
+                J[r, :len(ks)] = to_internal[other]
+                src[r, :len(ks)] = ks
+                rope[r, :len(ks)] = self.is_rope[ks]
+            real = (src < self.m).reshape(-1)
+            flat = np.nonzero(real)[0].astype(np.int32)
+            ks_all = src.reshape(-1)[flat].astype(np.int64)
+            r_real = rope.reshape(-1)[flat]
+            all_rope = bool(r_real.all())
+            mixed = StaticArray(rope) if r_real.any() and not all_rope else None
+            blk = Block(0, len(flat), (H, S), None, None, None, StaticArray(J), StaticArray(src), mixed, all_rope,
+                        flat=StaticArray(flat), star=True,
+                        hub=StaticArray(to_internal[np.asarray(hubs)].astype(np.int32)))
+            out.append((blk, ks_all))
+        return out
+
     def __hash__(self):
         return self._hash
 
@@ -307,9 +419,11 @@ class Topology:
 
     def __repr__(self):
         kinds = f"{int((~self.is_rope).sum())} rods, {int(self.is_rope.sum())} ropes"
+        if self.has_stars:
+            kinds += f", {int(self.star.max()) + 1} hub stars"
         strided = sum(b.strided for b in self.blocks)
         if self.compact:
             return (f"Topology(n={self.n}, dim={self.dim}, {kinds}, {self.n_colours} colours (compact: one "
-                    f"[{self.blocks[0].shape[0]}, {self.blocks[0].shape[1]}] table), view={self.view})")
+                    f"[{self.blocks[-1].shape[0]}, {self.blocks[-1].shape[1]}] table), view={self.view})")
         return (f"Topology(n={self.n}, dim={self.dim}, {kinds}, {self.n_colours} colours "
                 f"({strided} strided), view={self.view}{'' if self.order is None else ', parity-split'})")

@@ -83,12 +83,12 @@ def velocity_bias(topo: Topology, fr: tuple, beta, h, v=None) -> tuple:
     out = []
     for blk, f in zip(topo.blocks, fr):
         b = beta / h * f.C
-        if v is not None:
-            vi, vj = L.gather_pair(topo, blk, v)
-            b = b + curvature_rate(f.n, f.dist, vj - vi, h)
         if blk.has_rope:
             slack = jnp.where(f.C > 0, b, f.C / h)
             b = slack if blk.all_rope else jnp.where(blk.rope.array, slack, b)
+        if v is not None:       # every row, a slack rope's too: its speculative C(x + h v) <= 0 includes it, and
+            vi, vj = L.gather_pair(topo, blk, v)      # a rope just at its length gets the same target either way
+            b = b + curvature_rate(f.n, f.dist, vj - vi, h)
         out.append(b)
     return tuple(out)
 
@@ -110,6 +110,15 @@ STABILIZATIONS = ("baumgarte", "split")
 def check_stabilization(owner, value) -> None:
     if value not in STABILIZATIONS:
         raise ValueError(f"{owner}: `stabilization` must be 'baumgarte' or 'split', got {value!r}")
+
+
+class _Rows(NamedTuple):
+    """What `layout.block_solve` reads of a colour's rows."""
+
+    n: Any
+    wi: Any
+    wj: Any
+    k: Any
 
 
 def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None):
@@ -137,9 +146,10 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None):
         # (L.dot0), the update kernels were split and re-summed every colour: 8 to 16x slower
         # on the 64x64 cloth.
         dist, inv = L.safe_length(d)
-        dmu = (dist - rest - alpha * mu) * k
-        if jacobi_relaxation is not None:
-            dmu = jacobi_relaxation * dmu
+        if jacobi_relaxation is None:
+            dmu = L.block_solve(topo, blk, _Rows(d * inv, wi, wj, k), dist - rest - alpha * mu, alpha)
+        else:
+            dmu = jacobi_relaxation * (dist - rest - alpha * mu) * k
         new = clamp_ropes(blk, mu + dmu * (inv > 0).astype(inv.dtype))
         q = d * (((new - mu) if blk.has_rope else dmu) * inv)
         return wi * q, -wj * q, new

@@ -165,7 +165,7 @@ class PGS(Solver):
             f, b, lam = rows
             vi, vj = L.gather_pair(topo, blk, v)
             rel = L.dot(blk, vj - vi, f.n)
-            new = clamp_ropes(blk, lam + (rel + b) * f.k)
+            new = clamp_ropes(blk, lam + L.block_solve(topo, blk, f, rel + b))
             p = f.n * (new - lam)
             return L.add_pair(topo, blk, v, f.wi * p, -f.wj * p), new
 
@@ -201,7 +201,7 @@ class PGS(Solver):
             def colour(u, blk, rows):
                 f, r, l = rows
                 ui, uj = L.gather_pair(topo, blk, u)
-                d = (jnp.sum((uj - ui) * f.n, axis=0) + r) * f.k
+                d = L.block_solve(topo, blk, f, jnp.sum((uj - ui) * f.n, axis=0) + r)
                 p = f.n * d
                 return L.add_pair(topo, blk, u, f.wi * p, -f.wj * p), l + d
 

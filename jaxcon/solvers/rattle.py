@@ -73,7 +73,10 @@ class RATTLE(Solver):
             res = jnp.sum(d * d, axis=0) - r2
             s = jnp.sum(d * f.n, axis=0)
             ok = (f.k > 0) & (s > 0) & (jnp.abs(res) > tol * 2 * r2)
-            upd = jnp.where(ok, res * f.k / (2 * jnp.where(ok, s, 1)), 0)
+            if getattr(blk, "star", False):        # a star's rows share the hub: solved together, every row updated
+                upd = L.block_solve(topo, blk, f, jnp.where((f.k > 0) & (s > 0), res / (2 * jnp.where(s > 0, s, 1)), 0))
+            else:
+                upd = jnp.where(ok, res * f.k / (2 * jnp.where(ok, s, 1)), 0)
             new = clamp_ropes(blk, mu + upd)
             p = f.n * (new - mu)
             pi, pj = f.wi * p, -f.wj * p
@@ -99,7 +102,8 @@ class RATTLE(Solver):
             if blk.has_rope:  # a rope that is slack after the drift does not constrain the velocity
                 taut = f.C > -tol * jnp.maximum(r, tiny)
                 active = active & (taut if blk.all_rope else (taut | ~blk.rope.array))
-            new = clamp_ropes(blk, lam + jnp.where(active, rel * f.k, 0))
+            step = L.block_solve(topo, blk, f, rel) if getattr(blk, "star", False) else jnp.where(active, rel * f.k, 0)
+            new = clamp_ropes(blk, lam + step)
             p = f.n * (new - lam)
             return L.add_pair(topo, blk, v, f.wi * p, -f.wj * p), new
 

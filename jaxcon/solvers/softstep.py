@@ -42,7 +42,7 @@ def _sweep(topo, v, lam, fr, bias, mass_scale, impulse_scale, inv_h):
             b = jnp.where(slack, f.C * inv_h, b)
             ms = jnp.where(slack, 1, ms)
             isc = jnp.where(slack, 0, isc)
-        new = clamp_ropes(blk, lam + ms * f.k * (rel + b) - isc * lam)
+        new = clamp_ropes(blk, lam + ms * L.block_solve(topo, blk, f, rel + b) - isc * lam)
         p = f.n * (new - lam)
         return L.add_pair(topo, blk, v, f.wi * p, -f.wj * p), new
 
