@@ -172,7 +172,7 @@ def billiards(speed: float = 10.0, rows: int = 5, *, angle: float = 0.0, restitu
     default gap (`billiards_max_rows`); more are refused (they would start outside the cushions, pushed into
     each other).
     `collide` and `max_neighbours` are passed to `jc.build`: True (all pairs up to 256 balls) or "grid" (the
-    neighbour grid, whose capacity per ball is `max_neighbours`)."""
+    neighbour grid, whose capacity per ball is `max_neighbours`; all pairs need no capacity and ignore it)."""
     _count("billiards", "rows", rows, 1)
     for name, v in (("speed", speed), ("angle", angle)):
         _value("billiards", name, v, ())
