@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcon.core.layout import safe_norm
-from jaxcon.core.model import Model, State, Trajectory
+from jaxcon.core.model import Model, State, Trajectory, check_partners
 from jaxcon.core.pytree import concrete
 
 Array = Any
@@ -156,8 +156,9 @@ def _penetration(model: Model, x, partners):
     c = model.contact
     r = jnp.asarray(model.radius, x.dtype)
     parts = []
+    normal = safe_norm(jnp.asarray(model.plane_normal), axis=-1)[1]       # unit, as the solvers use it
     for p in range(c.n_planes):
-        parts.append(model.plane_offset[p] + r - jnp.sum(x * model.plane_normal[p], -1))
+        parts.append(model.plane_offset[p] + r - jnp.sum(x * normal[p], -1))
     for q in range(c.n_spheres):
         dist, _ = safe_norm(x - model.sphere_centre[q], axis=-1)
         parts.append(model.sphere_radius[q] + r - dist)
@@ -255,12 +256,8 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
             got = tuple(jnp.shape(getattr(state0, name)))
             if got != want:
                 raise ValueError(f"diagnose: `state0.{name}` has shape {got}, this model needs {want}")
+    _check_contact_record(model, traj, steps)
     grid = model.contact is not None and model.contact.has_grid
-    if grid and (traj.contact_partners is None or traj.contact_overflow is None):
-        raise ValueError("diagnose: this model has a neighbour grid, so `traj` needs its contact_partners and "
-                         "contact_overflow (as jc.rollout records them)")
-    if grid:
-        _grid_partners("diagnose", model, traj.contact_partners, (steps,))
     d = _diagnosis(model, traj, state0)
     known = concrete(d.overflow)
     if grid and known is not None and np.any(np.asarray(known) > 0):
@@ -270,6 +267,36 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
                       f"contacts may have been missed. Build the model with a larger `max_neighbours` (now "
                       f"{model.contact.grid_k})", stacklevel=2)
     return d
+
+
+def _check_contact_record(model: Model, traj: Trajectory, steps: int) -> None:
+    """`traj`'s contact arrays must be the ones this model records: none without contacts; contact_n [T, k] and
+    contact_t [T, k, dim] (each may be None) with them; a grid's contact_partners [T, n, K] and contact_overflow
+    [T] (both needed). A trajectory of another contact model is refused instead of measured against this one."""
+    t, c = model.topology, model.contact
+    names = ("contact_n", "contact_t", "contact_partners", "contact_overflow")
+    grid = c is not None and c.has_grid
+    want = {"contact_n": None if c is None else (steps, c.k), "contact_t": None if c is None else (steps, c.k, t.dim),
+            "contact_partners": (steps, t.n, c.grid_k) if grid else None,
+            "contact_overflow": (steps,) if grid else None}
+    what = "no contacts" if c is None else f"{c.k} contact slots ({c!r})"
+    for name in names:
+        a = getattr(traj, name)
+        if a is None:
+            if grid and name in ("contact_partners", "contact_overflow"):
+                raise ValueError("diagnose: this model has a neighbour grid, so `traj` needs its contact_partners "
+                                 "and contact_overflow (as jc.rollout records them)")
+            continue
+        if want[name] is None:
+            raise ValueError(f"diagnose: `traj.{name}` is set, but this model has {what}"
+                             f"{'' if c is None else ' and no neighbour grid'}: is it the model that made the "
+                             "trajectory?")
+        got = tuple(jnp.shape(a))
+        if got != want[name]:
+            raise ValueError(f"diagnose: `traj.{name}` has shape {got}, but this model ({what}) and {steps} recorded "
+                             f"steps need {want[name]}: is it the model that made the trajectory?")
+    if grid:
+        check_partners("diagnose", "traj.contact_partners", traj.contact_partners)
 
 
 @jax.jit

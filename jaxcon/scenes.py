@@ -13,6 +13,7 @@ import numpy as np
 
 from jaxcon.core.checks import check_real, check_values, resolve_dtype
 from jaxcon.core.model import build
+from jaxcon.core.pytree import concrete
 
 # Every physical value of a scene (lengths, masses, angles, size) may be a traced JAX value: scenes build their
 # arrays with jax.numpy, so `jax.grad` of a rollout with respect to an initial angle or a length goes through
@@ -159,27 +160,56 @@ def _count(owner, name, value, minimum):
 
 
 def billiards(speed: float = 10.0, rows: int = 5, *, angle: float = 0.0, restitution: float = 0.95,
-              friction: float = 0.05, gap: float = 1e-4, dtype=None):
+              friction: float = 0.05, gap: float = 1e-4, dtype=None, collide=True, max_neighbours=None):
     """A 2-D break, seen from above: a triangle of `rows` rows of balls (15 for 5 rows) racked with its apex on
     the foot spot, and the cue ball (particle 0) on the head spot moving at `speed` m/s towards the apex,
     `angle` rad off the long axis. Regulation radius and mass; the four cushions are planes; no gravity in the
     table's plane and no rolling resistance (a table without friction: momentum is conserved until a cushion
-    is hit). Racked balls are `gap` m apart. `restitution` and `friction` (ball-ball and ball-cushion) are
-    the model's leaves. Particles 1.. are the rack, row by row from the apex."""
+    is hit). Racked balls are `gap` m (>= 0) apart. `restitution` and `friction` (ball-ball and ball-cushion) are
+    the model's leaves. Particles 1.. are the rack, row by row from the apex.
+
+    The rack must fit on the table: between the foot spot and the foot cushion there is room for 13 rows at the
+    default gap (`billiards_max_rows`); more are refused (they would start outside the cushions, pushed into
+    each other).
+    `collide` and `max_neighbours` are passed to `jc.build`: True (all pairs up to 256 balls) or "grid" (the
+    neighbour grid, whose capacity per ball is `max_neighbours`; all pairs need no capacity and ignore it)."""
     _count("billiards", "rows", rows, 1)
-    for name, v, pos in (("speed", speed, False), ("angle", angle, False), ("gap", gap, False)):
+    for name, v in (("speed", speed), ("angle", angle)):
         _value("billiards", name, v, ())
+    _value("billiards", "gap", gap, ())
+    g = concrete(gap)
+    if g is None:
+        raise TypeError("billiards: `gap` sets the rack's layout and must be a concrete number, not a traced value")
+    g = float(g)
+    if g < 0:
+        raise ValueError(f"billiards: `gap` must be >= 0 (racked balls would overlap), got {g}")
+    if rows > billiards_max_rows(g):
+        raise ValueError(f"billiards: a rack of {rows} rows does not fit on the table {TABLE} m: from the foot spot "
+                         f"to the foot cushion there is room for at most {billiards_max_rows(g)} rows with gap {g:g} m "
+                         "(more would start outside the cushions, pushed into each other)")
     dtype = _dtype("billiards", dtype, speed, angle)
     L_, W = TABLE
-    d = 2 * BALL_RADIUS + gap
+    d = 2 * BALL_RADIUS + g
     rack = [(L_ * 0.75 + r * d * np.sqrt(3) / 2, W / 2 + (k - r / 2) * d) for r in range(rows) for k in range(r + 1)]
     x = jnp.asarray(np.array([(L_ * 0.25, W / 2)] + rack), dtype)
     a = jnp.asarray(angle).astype(dtype)
     v0 = jnp.asarray(speed).astype(dtype) * jnp.stack([jnp.cos(a), jnp.sin(a)])
     v = jnp.zeros_like(x).at[0].set(v0)
     planes = [((1.0, 0.0), 0.0), ((-1.0, 0.0), -L_), ((0.0, 1.0), 0.0), ((0.0, -1.0), -W)]
-    return build(x, BALL_MASS, velocities=v, gravity=jnp.zeros(2, dtype), radius=BALL_RADIUS, collide=True,
-                 planes=planes, restitution=restitution, friction=friction, restitution_threshold=0.05, dtype=dtype)
+    return build(x, BALL_MASS, velocities=v, gravity=jnp.zeros(2, dtype), radius=BALL_RADIUS, collide=collide,
+                 max_neighbours=max_neighbours, planes=planes, restitution=restitution, friction=friction,
+                 restitution_threshold=0.05, dtype=dtype)
+
+
+def billiards_max_rows(gap: float = 1e-4) -> int:
+    """The most rows of racked balls `gap` m apart that fit on the `billiards` table: the last row's balls inside
+    the foot cushion (the apex sits on the foot spot, a quarter of the table from it) and inside the side
+    cushions."""
+    L_, W = TABLE
+    d = 2 * BALL_RADIUS + gap
+    deep = int(np.floor((0.25 * L_ - BALL_RADIUS) / (d * np.sqrt(3) / 2) + 1e-9)) + 1
+    wide = int(np.floor((W - 2 * BALL_RADIUS) / d + 1e-9)) + 1
+    return min(deep, wide)
 
 
 def drape(n: int = 16, size: float = 1.0, mass: float = 0.5, *, height: float = 1.0, sphere_radius: float = 0.3,

@@ -1,5 +1,7 @@
 """The calls of shared/API.md, as written there (the user-facing contract)."""
 import json
+import os
+import re
 
 import jax
 import jax.numpy as jnp
@@ -8,6 +10,22 @@ import optax  # noqa: F401  (part of the contract's imports)
 
 import jaxcon as jc
 from jaxcon.bench.cli import main
+
+
+def test_readme_tour_runs_as_written():
+    """README.md's first python block, executed top to bottom as it stands (its diagnose line used to pair the
+    pendulum's trajectory with the model `jc.build` had replaced, and `positions`, `observed` and `batch` were
+    never defined)."""
+    text = open(os.path.join(os.path.dirname(__file__), "..", "README.md")).read()
+    code = re.search(r"```python\n(.*?)```", text, re.S).group(1)
+    ns = {}
+    exec(compile(code, "README.md (tour)", "exec"), ns)
+    assert ns["traj"].contact_n.shape[0] == 120                     # the last trajectory is the billiards break
+    assert ns["report"].violation.shape == (480,) and not bool(ns["report"].diverged)
+    result = ns["result"]
+    np.testing.assert_allclose(np.asarray(result.model.rest_length), [0.32, 0.28, 0.3], rtol=1e-3)
+    assert result.converged and result.reason == "tolerance"
+    assert ns["trajs"].x.shape == (8, 60, 4, 2) and np.isfinite(np.asarray(ns["g_rest"])).all()
 
 
 def test_api_md_calls_work_as_written():

@@ -107,6 +107,39 @@ def test_batched_rollout_refuses_devices_and_mesh_together():
         jc.batched_rollout(model, states, jc.PGS(), 1 / 240, 3, mesh="batch")
 
 
+@pytest.mark.parametrize("devices, match", [
+    ("cpu", "got 'cpu'"),                               # was AttributeError: 'numpy.str_' ... 'platform'
+    (["cpu"], r"`devices\[0\]` is 'cpu'"),
+    ([0], r"`devices\[0\]` is 0"),
+    (jax.devices()[0], "got CpuDevice|got .*Device"),
+    ([], "empty"),
+    (jax.devices()[:1] * 2, "twice"),
+])
+def test_batched_rollout_devices_must_be_jax_devices(devices, match):
+    model, state = jc.scenes.pendulum()
+    with pytest.raises((TypeError, ValueError), match="batched_rollout: `devices`.*" + match):
+        jc.batched_rollout(model, _states(state, 2), jc.PGS(), 1 / 240, 3, devices=devices)
+
+
+def test_what_jax_devices_returns_is_accepted_as_devices():
+    for devices in (jax.devices(), jax.local_devices(), tuple(jax.local_devices())):
+        mesh = batch._mesh(devices, None)
+        assert list(mesh.devices.flat) == list(devices)
+
+
+def test_batched_contact_impulses_must_share_the_batch():
+    """States whose contact impulses hold another batch size gave a reshape TypeError deep inside."""
+    model, state = jc.scenes.falling_chain(2)
+    states = _states(state, 4)
+    for name in ("contact_n", "contact_t"):
+        short = states.replace(**{name: getattr(states, name)[:3]})
+        with pytest.raises(ValueError, match=rf"`states.{name}` must have the batch of `states.x` \(4 initial "
+                                             r"states\).*got shape \(3,"):
+            jc.batched_rollout(model, short, jc.PGS(), 1 / 240, 3)
+    with pytest.raises(ValueError, match=r"`states.lam` must have the batch .*got a scalar"):
+        jc.batched_rollout(model, states.replace(lam=jnp.zeros(())), jc.PGS(), 1 / 240, 3)
+
+
 SHARDED = textwrap.dedent("""
     import json, os
     os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"

@@ -182,6 +182,26 @@ def test_billiards_break_conserves_momentum_and_never_gains_energy():
     assert np.all(ct <= 0.05 * cn + 1e-15)
 
 
+def test_billiards_racks_that_fit_start_apart_and_inside_the_cushions():
+    """rows=23 put the back rows beyond the foot cushion, balls overlapping by a full diameter once the cushions
+    pushed them back; now every accepted rack starts apart and on the table, and the grid's capacity is
+    passed through."""
+    R, (L, W) = jc.scenes.BALL_RADIUS, jc.scenes.TABLE
+    most = jc.scenes.billiards_max_rows()
+    assert most == 13
+    for gap in (1e-4, 0.0, 0.01):
+        model, state = jc.scenes.billiards(rows=jc.scenes.billiards_max_rows(gap), gap=gap)
+        x = np.asarray(state.x)
+        d = np.linalg.norm(x[:, None] - x[None], axis=-1) + np.eye(len(x))
+        assert d.min() >= 2 * R + gap - 1e-9
+        assert np.all((x >= R - 1e-12) & (x <= np.array([L, W]) - R + 1e-12))
+        assert np.max(np.asarray(jc.penetration(model, state.x))) < 1e-12      # rounding, with gap 0
+    with pytest.raises(ValueError, match="at most 11 rows with gap 0.01"):
+        jc.scenes.billiards(rows=13, gap=0.01)
+    model, _ = jc.scenes.billiards(rows=2, collide="grid", max_neighbours=4)
+    assert model.contact.grid_k == 4
+
+
 def test_cloth_draped_on_a_sphere_stays_outside():
     model, state = jc.scenes.drape(n=8)
     R = float(model.sphere_radius[0])

@@ -153,3 +153,29 @@ def test_gradient_through_a_grid_rollout_is_finite():
     g = jax.grad(loss, argnums=(0, 1))(jnp.array([1.5, 0.8]), R)
     assert all(np.all(np.isfinite(np.asarray(a))) for a in g)
     assert float(jnp.abs(g[0]).max()) > 0
+
+
+def test_record_memory_counts_every_recorded_array(monkeypatch):
+    """The estimate counted x, v and lam only: a grid model's record is mostly contact impulses and partners
+    (here 18 discs, no rods: 2 * 18 * 2 position and velocity values against 198 contact slots of 3 values and
+    144 partners per step): the old estimate was a tenth of the record, so a record 10x too large for memory passed
+    the check."""
+    from jaxcon.core import sim
+    model, state = _pile("grid")
+    final, traj = jc.rollout(model, state, jc.PGS(10), 1 / 120, 300)
+    recorded = sum(a.nbytes for a in jax.tree.leaves(traj))
+    assert sim.record_bytes(model, state, 300) == recorded
+    assert recorded > 10 * 300 * (2 * 18 * 2) * 8                  # the contacts dominate the record
+    monkeypatch.setattr(sim, "available_memory", lambda: (recorded, "test memory"))
+    with pytest.raises(ValueError, match="save_every"):             # twice the record must fit
+        jc.rollout(model, state, jc.PGS(10), 1 / 120, 300)
+    jc.core.sim.check_record_memory("rollout", model, state, 300, 3)
+
+
+def test_contact_grid_bench_times_all_pairs_at_every_size():
+    """Its "all pairs" column built collide=True, which is the grid above 256 particles; it lists every pair."""
+    from jaxcon.bench.contact_grid import scene
+    n = MAX_ALL_PAIRS_PARTICLES + 4
+    model, _ = scene(n, "all")
+    assert not model.contact.has_grid and model.contact.n_pairs == n * (n - 1) // 2
+    assert scene(n, "grid")[0].contact.has_grid

@@ -8,6 +8,7 @@ import optax
 import pytest
 
 import jaxcon as jc
+from jaxcon.core.pytree import pytree_dataclass
 from jaxcon.identification.experiments import chain_identification
 
 DT = 1 / 240
@@ -196,6 +197,40 @@ def test_fit_refuses_bad_input_before_compiling(kwargs, match):
         jc.fit(model, state, jc.PGS(), DT, observed, ("rest_length",), **args)
 
 
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(bounds={"bta": (0.0, 0.5)}), r"`bounds` has the key 'bta'.*not a fitted"),       # a typo was ignored
+    (dict(transforms={"rest_lenght": "identity"}), r"`transforms` has the key 'rest_lenght'"),
+    (dict(bounds={"beta": (0.5, 0.5)}), r"bounds\['beta'\].*lo < hi"),
+    (dict(bounds={"beta": (0.5, 0.1)}), r"bounds\['beta'\].*lo < hi"),
+    (dict(bounds={"beta": (0.0, np.inf)}), r"bounds\['beta'\].*finite"),
+    (dict(bounds={"beta": (np.nan, 1.0)}), r"bounds\['beta'\].*finite"),
+    (dict(bounds={"beta": 0.5}), r"bounds\['beta'\].*pair"),
+    (dict(bounds={"beta": (0.3, 0.9)}), r"`beta` starts at 0.2, outside its bounds \(0.3, 0.9\)"),  # was clamped
+    (dict(bounds={"rest_length": (2.0, 3.0)}), r"`rest_length` starts at 1, outside its bounds"),
+    (dict(bounds={"rest_length": (0.5, 2.0)}, transforms={"rest_length": "log"}), r"bounds\['rest_length'\].*ignored"),
+    (dict(transforms={"beta": "sigmoid"}), r"transforms\['beta'\].*'log', 'logit' or 'identity'"),
+])
+def test_fit_refuses_bad_transforms_and_bounds_naming_the_key(kwargs, match):
+    """A typo in a key, empty or reversed bounds, bounds that would be ignored, or a start outside its bounds: a
+    clear error before anything compiles (the typo was ignored, the start silently clamped into the bounds)."""
+    model, state = jc.scenes.pendulum()
+    with pytest.raises(ValueError, match=match):
+        jc.fit(model, state, jc.PGS(beta=0.2), DT, np.zeros((10, 2, 2)), ("rest_length", "beta"), progress=False,
+               **kwargs)
+
+
+def test_fit_bounds_keep_a_parameter_inside_them():
+    """Bounds on a parameter without a transform of its own use the logistic map onto them (they used to be
+    ignored for a 'log' parameter)."""
+    from jaxcon.identification.fit import _check_transforms_and_bounds, _parameters
+    model, state = jc.scenes.pendulum()
+    transforms, bounds = _check_transforms_and_bounds(("rest_length",), None, {"rest_length": (0.5, 2.0)})
+    spec, u0 = _parameters(("rest_length",), model, jc.PGS(), state, transforms, bounds)
+    p = spec["rest_length"]
+    assert (p.kind, p.lo, p.hi) == ("logit", 0.5, 2.0)
+    np.testing.assert_allclose(float(p.lo + (p.hi - p.lo) * jax.nn.sigmoid(u0["rest_length"][0])), 1.0)
+
+
 @pytest.mark.parametrize("solver, name", [(jc.XPBD(), "compliance"), (jc.Penalty(substeps=20), "damping")])
 def test_fit_refuses_a_log_parameter_that_starts_at_zero(solver, name):
     """log(0) would freeze the parameter at 0 forever; say so and say what to do."""
@@ -241,3 +276,45 @@ def test_fit_is_float64_under_x64_and_strict_promotion():
                      progress=False)
     assert res.model.rest_length.dtype == jnp.float64 and jnp.result_type(res.solver.beta) == jnp.float64
     assert res.history.dtype == np.float64
+
+
+@pytree_dataclass
+class _NaNGradientPGS(jc.PGS):
+    """PGS whose steps are unchanged but whose gradient with respect to beta is NaN: 0 * sqrt'(0) = 0 * inf."""
+
+    def _step(self, sys, x, v, lam, dt):
+        x, v, lam = super()._step(sys, x, v, lam, dt)
+        return x + 0 * jnp.sqrt(jnp.maximum(self.beta - 2.0, 0.0)), v, lam
+
+
+@pytest.mark.parametrize("optimizer", ["adam", "lm"])
+def test_fit_stops_on_a_non_finite_gradient_without_claiming_convergence(optimizer):
+    """A gradient (Adam) or Jacobian (Levenberg-Marquardt) that is NaN while the loss is finite. Before, Adam
+    stepped to NaN parameters and LM refused every step until the tolerance said 'converged' (the float32
+    falling chain's friction fit: friction unchanged, converged=True); now the fit stops at once and says why."""
+    guess, state, true_L, obs = _chain_experiment(n=3)
+    solver = _NaNGradientPGS(iterations=10, beta=0.3)
+    res = jc.fit(guess, state, solver, DT, obs[:20], ("beta",), optimizer=optimizer, progress=False)
+    assert res.reason == "non-finite gradient" and not res.converged
+    assert res.iterations == 1 and np.isfinite(res.history[0])
+    assert float(res.solver.beta) == pytest.approx(0.3)
+
+
+def test_fit_that_ends_above_its_starting_loss_has_not_converged():
+    """The rule itself, on scripted updates: the short first stage lowers its own loss while the whole record's
+    loss rises, and the last stage then stops at its tolerance above the start. That is not convergence."""
+    from jaxcon.identification.fit import _run_stages
+
+    def update(u, opt_state, data, horizon):
+        first = int(horizon) == 10
+        value = 1.0 / (1 + u) if first else 1.0          # the stage loss: falls in stage 1, flat in stage 2
+        full = 1.0 + 0.1 * u                              # the whole record's loss: rises as u moves
+        return u + 1, opt_state, value, full, True
+
+    best_u, history, horizons, reason, converged = _run_stages(update, lambda u: None, 0, None, (10, 40), 100,
+                                                               1e-4, 3, False)
+    assert reason == "loss increased" and not converged
+    assert history[0] == 1.0 and best_u > 0
+    # the same run whose whole-record loss falls with the stage's is converged
+    down = lambda u, o, d, h: (u + 1, o, 1.0 / (1 + u) if int(h) == 10 else 0.5, 1.0 / (1 + u), True)  # noqa: E731
+    assert _run_stages(down, lambda u: None, 0, None, (10, 40), 100, 1e-4, 3, False)[3:] == ("tolerance", True)

@@ -227,6 +227,9 @@ def test_diagnostics_check_shapes_against_the_model():
     (lambda: jc.scenes.chain(4, end_mass=-1.0), "end_mass"),
     (lambda: jc.scenes.cloth(3, 3, size="1"), "size.*real"),
     (lambda: jc.scenes.chain(4, gravity=-9.81), "gravity"),
+    (lambda: jc.scenes.billiards(rows=23), "rack of 23 rows does not fit.*at most 13 rows"),   # started overlapped
+    (lambda: jc.scenes.billiards(gap=-0.01), "gap.*>= 0"),
+    (lambda: jc.scenes.billiards(max_neighbours=0), "max_neighbours"),
 ])
 def test_scenes_reject_bad_arguments(make, match):
     with pytest.raises((ValueError, TypeError), match=match):
@@ -275,3 +278,137 @@ def test_cli_speaks_to_users():
         for action in sp._actions:
             assert action.help, f"{name} {action.option_strings} has no help text"
     assert all(c.help for c in sub._choices_actions)
+
+
+# ---- model and state checks that replace and leaf-rebuilt objects cannot bypass -----------------------------
+def _floor_ball():
+    return jc.build(np.array([[0.0, 0.5]]), 1.0, radius=0.1, planes=[((0.0, 1.0), 0.0)],
+                    spheres=[((2.0, 0.0), 0.3)])
+
+
+def _rebuilt(obj, **leaves):
+    """`obj` with leaves swapped by unflattening, as jax does: no __post_init__ runs."""
+    names = type(obj)._data_fields
+    values, treedef = jax.tree_util.tree_flatten(obj, is_leaf=lambda a: a is None)
+    return jax.tree_util.tree_unflatten(treedef, [leaves.get(k, v) for k, v in zip(names, values)])
+
+
+@pytest.mark.parametrize("leaf, value, match", [
+    ("plane_normal", np.zeros((1, 2)), r"plane_normal\[0\]` is zero"),     # was accepted: the ball fell through
+    ("plane_normal", np.array([[np.nan, 1.0]]), "plane_normal.*finite"),
+    ("radius", np.array([-0.1]), "radius.*>= 0"),
+    ("sphere_radius", np.array([0.0]), "sphere_radius.*> 0"),
+    ("sphere_radius", np.array([-0.3]), "sphere_radius.*> 0"),
+])
+def test_model_replace_and_rollout_refuse_what_build_refuses(leaf, value, match):
+    model, state = _floor_ball()
+    with pytest.raises(ValueError, match="Model: .*" + match):
+        model.replace(**{leaf: value})
+    with pytest.raises(ValueError, match=r"rollout: `model\." + match):       # rebuilt from leaves: checked at entry
+        jc.rollout(_rebuilt(model, **{leaf: jnp.asarray(value)}), state, jc.PGS(), 1 / 240, 2)
+
+
+def test_colliding_particles_keep_a_radius_after_replace():
+    x = np.array([[0.0, 0.5], [1.0, 0.5], [2.0, 0.5]])
+    pairs, _ = jc.build(x, 1.0, radius=0.1, collide=True)
+    with pytest.raises(ValueError, match=r"particles \(0, 1\) may collide.*`radius` 0"):
+        pairs.replace(radius=jnp.zeros(3))
+    grid, _ = jc.build(x, 1.0, radius=0.1, collide="grid")
+    with pytest.raises(ValueError, match="at most one particle may have `radius` 0"):
+        grid.replace(radius=jnp.array([0.1, 0.0, 0.0]))
+    grid.replace(radius=jnp.array([0.1, 0.0, 0.1]))                  # one point among discs is allowed, as in build
+
+
+def test_grid_partners_must_be_particles_of_the_model():
+    """Out-of-range partners gave NaN penetrations; a state of another model gave a bare shape error."""
+    x = np.array([[0.0, 0.2], [0.3, 0.2], [0.6, 0.2]])
+    model, state = jc.build(x, 1.0, radius=0.1, collide="grid", planes=[((0.0, 1.0), 0.0)])
+    K = model.contact.grid_k
+    for bad, entry in ((3, "is 3"), (-2, "is -2"), (1, "is 1")):          # past n, below -1, a particle itself
+        p = np.full((3, K), -1, np.int32)
+        p[1, 0] = bad
+        with pytest.raises(ValueError, match=r"State: `contact_partners` must hold -1 .*" + entry):
+            state.replace(contact_partners=jnp.asarray(p))
+        with pytest.raises(ValueError, match=r"rollout: `state.contact_partners` must hold -1 .*" + entry):
+            jc.rollout(model, _rebuilt(state, contact_partners=jnp.asarray(p)), jc.PGS(), 0.01, 2)
+    with pytest.raises(TypeError, match="contact_partners.*integer"):
+        state.replace(contact_partners=jnp.zeros((3, K)))
+    other, other_state = jc.build(x[:2], 1.0, radius=0.1, collide="grid", planes=[((0.0, 1.0), 0.0)])
+    with pytest.raises(ValueError, match=r"state.contact_n` must have shape .*another model"):
+        jc.rollout(model, other_state.replace(x=state.x, v=state.v), jc.PGS(), 0.01, 2)
+    with pytest.raises(ValueError, match=r"state.contact_partners` must have shape \(3, 8\), got shape \(2, 8\).*"
+                                         "another model"):
+        jc.rollout(model, state.replace(contact_partners=other_state.contact_partners), jc.PGS(), 0.01, 2)
+    with pytest.raises(ValueError, match=r"state.contact_n` must have shape \(\d+,\), got a scalar"):
+        jc.rollout(model, state.replace(contact_n=jnp.zeros(())), jc.PGS(), 0.01, 2)
+
+
+def test_diagnose_refuses_the_contact_record_of_another_model():
+    """A trajectory made by another contact model was measured against this one's contacts."""
+    model, state = _floor_ball()
+    _, traj = jc.rollout(model, state, jc.PGS(), 1 / 240, 2)
+    two, _ = jc.build(np.array([[0.0, 0.5]]), 1.0, radius=0.1, planes=[((0.0, 1.0), 0.0), ((1.0, 0.0), -1.0)],
+                      spheres=[((2.0, 0.0), 0.3)])
+    with pytest.raises(ValueError, match=r"diagnose: `traj.contact_n` has shape \(2, 2\).*model that made"):
+        jc.diagnose(two, traj)
+    with pytest.raises(ValueError, match=r"diagnose: `traj.contact_t`"):
+        jc.diagnose(model, traj.replace(contact_t=traj.contact_t[:, :1]))
+    plain, _ = jc.build(np.array([[0.0, 0.0], [0.0, 0.5]]), 1.0, rods=[(0, 1)], fixed=[0])
+    _, ptraj = jc.rollout(plain, jc.build(np.array([[0.0, 0.0], [0.0, 0.5]]), 1.0, rods=[(0, 1)], fixed=[0])[1],
+                          jc.PGS(), 1 / 240, 2)
+    with pytest.raises(ValueError, match="`traj.contact_n` is set, but this model has no contacts"):
+        jc.diagnose(plain, ptraj.replace(contact_n=jnp.zeros((2, 1))))
+    assert not bool(jc.diagnose(model, traj, state).diverged)          # its own model: accepted
+
+
+# ---- x64 switched after a model was built -------------------------------------------------------------------
+def test_a_float64_model_used_after_x64_is_switched_off_is_refused():
+    """It used to run silently in float32 (or, for some contact models, crash inside the contact code)."""
+    model, state = jc.scenes.falling_chain(2)              # float64: the suite runs with x64 on
+    assert state.x.dtype == jnp.float64
+    try:
+        jax.config.update("jax_enable_x64", False)
+        for call in (lambda: jc.rollout(model, state, jc.PGS(), 1 / 240, 2),
+                     lambda: jc.step(model, state, jc.PGS(), 1 / 240),
+                     lambda: jc.batched_rollout(model, jax.tree.map(lambda a: a[None], state), jc.PGS(), 1 / 240, 2)):
+            with pytest.raises(ValueError, match=r"holds float64 arrays.*jax_enable_x64 is off.*Rebuild"):
+                call()
+        model32, state32 = jc.scenes.pendulum()            # built now: float32
+    finally:
+        jax.config.update("jax_enable_x64", True)
+    final, _ = jc.rollout(model32, state32, jc.PGS(), 1 / 240, 2)     # a float32 model runs in float32 under x64
+    assert final.x.dtype == jnp.float32
+
+
+# ---- half precision and unclear messages ---------------------------------------------------------------------
+def test_half_precision_values_are_real_numbers_but_not_a_simulation_dtype():
+    """bfloat16 values were called 'not real numbers'; float16 positions built a model no dt could step."""
+    for half in (jnp.bfloat16, jnp.float16):
+        model, _ = jc.build(X, jnp.ones(3, half), rods=[(0, 1)], velocities=jnp.zeros((3, 2), half), fixed=[0])
+        assert model.inv_mass.dtype == jnp.float64                      # cast like any other input
+        with pytest.raises(TypeError, match=r"positions.*(bfloat16|float16).*float32 or float64"):
+            jc.build(jnp.asarray(X, half), np.ones(3), rods=[(0, 1)], fixed=[0])
+        with pytest.raises(TypeError, match=r"`dtype` is .*float32 or float64"):
+            jc.scenes.pendulum(dtype=half)
+    model, state = jc.scenes.pendulum()
+    with pytest.raises(TypeError, match=r"state.x.*bfloat16.*float32 or float64"):
+        jc.rollout(model, state.replace(x=state.x.astype(jnp.bfloat16)), jc.PGS(), 1 / 240, 2)
+    with pytest.raises(ValueError, match=r"state.v` must be finite"):     # checked as numbers, not refused as unreal
+        jc.rollout(model, state.replace(v=state.v.at[1, 0].set(jnp.nan).astype(jnp.bfloat16)), jc.PGS(), 1 / 240, 2)
+
+
+def test_shape_errors_say_a_scalar_was_passed():
+    model, state = jc.scenes.chain(3)
+    with pytest.raises(ValueError, match=r"`state.lam` must have shape \(3,\), got a scalar"):
+        jc.rollout(model, state.replace(lam=jnp.zeros(())), jc.PGS(), 1 / 240, 2)
+
+
+def test_cli_refuses_a_directory_as_out(tmp_path, capsys):
+    from jaxcon.bench.cli import main
+    for out, match in ((str(tmp_path), "is a directory"), (f"{__file__}/bench.json", "folder .* does not exist or is "
+                                                                                     "not writable")):
+        with pytest.raises(SystemExit) as exc:
+            main(["bench", "--small", "--out", out])
+        assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert re.search(f"--out {re.escape(out)}: {match}", err), err

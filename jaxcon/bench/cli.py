@@ -71,15 +71,28 @@ def _writable_folder(path) -> bool:
     return os.path.isdir(folder) and os.access(folder, os.W_OK)
 
 
+def _unwritable_file(path) -> str:
+    """Why the bench could not write its JSON to `path` ('' if it can): checked before anything runs."""
+    path = os.path.abspath(path)
+    folder = os.path.dirname(path)
+    if os.path.isdir(path):
+        return "is a directory; give a file path for the JSON (e.g. DIR/bench.json)"
+    if not os.path.isdir(folder) or not os.access(folder, os.W_OK | os.X_OK):
+        return f"folder {folder} does not exist or is not writable"
+    if os.path.exists(path) and not os.access(path, os.W_OK):
+        return "exists and is not writable"
+    return ""
+
+
 def main(argv=None) -> int:
     p = _parser()
     args = p.parse_args(argv)
     if args.cmd is None:
         p.error("choose a command: demo or bench")
     if args.cmd == "bench" and args.out:
-        folder = os.path.dirname(os.path.abspath(args.out))
-        if not os.path.isdir(folder) or not os.access(folder, os.W_OK):
-            p.error(f"--out {args.out}: folder {folder} does not exist or is not writable")
+        problem = _unwritable_file(args.out)
+        if problem:
+            p.error(f"--out {args.out}: {problem}")
     if args.cmd == "bench" and args.speed_vs_error:
         if os.path.exists(args.out_dir) and not os.path.isdir(args.out_dir) or not _writable_folder(args.out_dir):
             p.error(f"--out-dir {args.out_dir}: not a writable folder")

@@ -23,8 +23,8 @@ from jax.sharding import Mesh, PartitionSpec
 
 from jaxcon.core import layout as L
 from jaxcon.core import sim as _sim
-from jaxcon.core.checks import check_int, check_values
-from jaxcon.core.model import Model, State, Trajectory
+from jaxcon.core.checks import check_int, check_values, describe_shape
+from jaxcon.core.model import Model, State, Trajectory, check_partners
 from jaxcon.core.pytree import StaticArray
 from jaxcon.core.system import Solver, System
 from jaxcon.core.topology import Block, Topology
@@ -236,10 +236,25 @@ def _mesh(devices, mesh):
         if not isinstance(mesh, Mesh):
             raise TypeError(f"batched_rollout: `mesh` must be a jax.sharding.Mesh, got {type(mesh).__name__}")
         return mesh
-    devices = jax.local_devices() if devices is None else list(devices)
+    devices = jax.local_devices() if devices is None else _devices(devices)
+    return Mesh(np.array(devices), ("batch",))
+
+
+def _devices(devices) -> list:
+    """`devices` as a list of distinct jax Devices (what jax.devices() and jax.local_devices() return)."""
+    hint = "a list of jax devices, such as jax.local_devices() or jax.devices('cpu')[:2]"
+    if isinstance(devices, (str, bytes, jax.Device)) or not hasattr(devices, "__iter__"):
+        raise TypeError(f"batched_rollout: `devices` must be {hint}, got {devices!r}")
+    devices = list(devices)
     if not devices:
         raise ValueError("batched_rollout: `devices` is empty")
-    return Mesh(np.array(devices), ("batch",))
+    for k, d in enumerate(devices):
+        if not isinstance(d, jax.Device):
+            raise TypeError(f"batched_rollout: `devices` must be {hint}; `devices[{k}]` is {d!r} "
+                            f"({type(d).__name__})")
+    if len(set(devices)) != len(devices):
+        raise ValueError(f"batched_rollout: `devices` lists a device twice: {devices}")
+    return devices
 
 
 def default_chunk(devices) -> int | None:
@@ -285,12 +300,20 @@ def _check_batch(model, states, solver, dt, steps, save_every, chunk):
     if chunk is not None:
         check_int("batched_rollout", "chunk", chunk, 1)
     check_int("batched_rollout", "save_every", save_every, 1)
+    _sim.check_x64("batched_rollout", model, states)
+    B = np.shape(states.x)[0]
+    for name in ("x", "v", "lam", "contact_n", "contact_t", "contact_partners"):
+        a = getattr(states, name)
+        if a is not None and (np.ndim(a) == 0 or np.shape(a)[0] != B):
+            raise ValueError(f"batched_rollout: `states.{name}` must have the batch of `states.x` ({B} initial "
+                             f"states) as its leading axis, got {describe_shape(np.shape(a))}")
     first = jax.tree.map(lambda a: a[0], states)
     _sim._check_call("batched_rollout", model, first, solver, dt, steps)
-    for name in ("x", "v", "lam"):
-        if np.shape(getattr(states, name))[0] != np.shape(states.x)[0]:
-            raise ValueError(f"batched_rollout: `states.{name}` has a different batch size than `states.x`")
-        check_values("batched_rollout", f"states.{name}", getattr(states, name))
+    for name in ("x", "v", "lam", "contact_n", "contact_t"):
+        if getattr(states, name) is not None:
+            check_values("batched_rollout", f"states.{name}", getattr(states, name))
+    if states.contact_partners is not None:
+        check_partners("batched_rollout", "states.contact_partners", states.contact_partners)
     if steps % save_every:
         raise ValueError(f"batched_rollout: `steps` ({steps}) must be a multiple of `save_every` ({save_every})")
     _sim.check_record_memory("batched_rollout", model, first, steps, save_every, batch=int(np.shape(states.x)[0]))

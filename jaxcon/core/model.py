@@ -7,7 +7,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcon.core import layout as _layout
-from jaxcon.core.checks import check_real, check_scalar, check_shape, check_values, resolve_dtype
+from jaxcon.core.checks import (
+    check_real,
+    check_scalar,
+    check_shape,
+    check_simulation_dtype,
+    check_values,
+    resolve_dtype,
+)
 from jaxcon.core.contact import ContactTopology, check_max_neighbours, contact_pairs, uses_grid
 from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
 from jaxcon.core.topology import Topology, check_colouring, parse_pairs as _pairs, star_colouring
@@ -46,16 +53,7 @@ class Model:
     contact: Optional[ContactTopology] = static_field(default=None)
 
     def __post_init__(self):
-        t = self.topology
-        if not isinstance(t, Topology):
-            raise TypeError(f"Model: `topology` must be a Topology, got {type(t).__name__}")
-        check_shape("Model", "inv_mass", self.inv_mass, (t.n,))
-        check_shape("Model", "rest_length", self.rest_length, (t.m,))
-        check_shape("Model", "gravity", self.gravity, (t.dim,))
-        check_values("Model", "inv_mass", self.inv_mass, nonneg=True)
-        check_values("Model", "rest_length", self.rest_length, nonneg=True)
-        check_values("Model", "gravity", self.gravity)
-        _check_contact_leaves(self)
+        check_model("Model", self)
 
     # convenience, all static
     @property
@@ -102,26 +100,66 @@ _CONTACT_LEAVES = ("radius", "friction", "restitution", "restitution_threshold",
                    "sphere_centre", "sphere_radius")
 
 
-def _check_contact_leaves(model) -> None:
+def check_model(owner: str, model, prefix: str = "") -> None:
+    """What `build` refuses, refused on a model's leaves wherever they are known now: shapes, finite values,
+    signs, plane normals, radii. `Model.__post_init__` (so `model.replace`) runs it with owner "Model"; the
+    rollouts run it again at their entry (owner the call, prefix "model.") for models rebuilt from leaves, which
+    bypasses `__post_init__`. Traced leaves are not checked."""
+    t = model.topology
+    if not isinstance(t, Topology):
+        raise TypeError(f"{owner}: `{prefix}topology` must be a Topology, got {type(t).__name__}")
+    for name, shape, sign in (("inv_mass", (t.n,), True), ("rest_length", (t.m,), True),
+                              ("gravity", (t.dim,), False)):
+        check_shape(owner, prefix + name, getattr(model, name), shape)
+        check_values(owner, prefix + name, getattr(model, name), nonneg=sign)
+    _check_contact_leaves(owner, model, prefix)
+
+
+def _check_contact_leaves(owner, model, prefix) -> None:
     c, t = model.contact, model.topology
     if c is None:
         given = [k for k in _CONTACT_LEAVES if getattr(model, k) is not None]
         if given:
-            raise ValueError(f"Model: `{given[0]}` is set but the model has no contacts (build it with `planes`, "
-                             "`spheres` or `collide`)")
+            raise ValueError(f"{owner}: `{prefix}{given[0]}` is set but the model has no contacts (build it with "
+                             "`planes`, `spheres` or `collide`)")
         return
     if not isinstance(c, ContactTopology):
-        raise TypeError(f"Model: `contact` must be a ContactTopology or None, got {type(c).__name__}")
+        raise TypeError(f"{owner}: `{prefix}contact` must be a ContactTopology or None, got {type(c).__name__}")
     shapes = {"radius": (t.n,), "friction": (), "restitution": (), "restitution_threshold": (),
               "plane_normal": (c.n_planes, t.dim), "plane_offset": (c.n_planes,),
               "sphere_centre": (c.n_spheres, t.dim), "sphere_radius": (c.n_spheres,)}
     for k, shape in shapes.items():
-        check_shape("Model", k, getattr(model, k), shape)
-        check_values("Model", k, getattr(model, k), nonneg=k in ("radius", "friction", "restitution",
-                                                                   "restitution_threshold", "sphere_radius"))
+        check_shape(owner, prefix + k, getattr(model, k), shape)
+        check_values(owner, prefix + k, getattr(model, k), positive=k == "sphere_radius",
+                     nonneg=k in ("radius", "friction", "restitution", "restitution_threshold"))
     e = concrete(model.restitution)
     if e is not None and float(e) > 1:
-        raise ValueError(f"Model: `restitution` must be in [0, 1], got {float(e)} (above 1 every bounce gains energy)")
+        raise ValueError(f"{owner}: `{prefix}restitution` must be in [0, 1], got {float(e)} (above 1 every bounce "
+                         "gains energy)")
+    nc = concrete(model.plane_normal)
+    if nc is not None and len(nc):
+        zero = np.linalg.norm(np.asarray(nc, np.float64), axis=-1) == 0
+        if zero.any():
+            raise ValueError(f"{owner}: `{prefix}plane_normal[{int(np.argmax(zero))}]` is zero: a plane needs a "
+                             "nonzero normal (particles stay in normal . x >= offset + radius)")
+    check_contact_radii(owner, prefix + "radius", concrete(model.radius), c.pairs.array, c.has_grid)
+
+
+def check_contact_radii(owner, name, radius, pairs, grid) -> None:
+    """Particles that may collide need a size: each candidate pair a positive sum of radii, and with a neighbour
+    grid (where every pair may collide) at most one particle of radius 0. `radius` [n] known now, or None."""
+    if radius is None:
+        return
+    rc = np.asarray(radius)
+    if len(pairs):
+        both = rc[pairs[:, 0]] + rc[pairs[:, 1]]
+        if (both <= 0).any():
+            k = int(np.argmax(both <= 0))
+            raise ValueError(f"{owner}: particles {tuple(pairs[k].tolist())} may collide (`collide`) but both have "
+                             f"`{name}` 0; give them a radius > 0")
+    if grid and np.sum(rc <= 0) > 1:
+        raise ValueError(f"{owner}: with the neighbour grid every pair of particles may collide, so at most one "
+                         f"particle may have `{name}` 0, got {int(np.sum(rc <= 0))}; give them a radius > 0")
 
 
 @pytree_dataclass
@@ -147,6 +185,12 @@ class State:
     contact_n: Array = None
     contact_t: Array = None
     contact_partners: Array = None
+
+    def __post_init__(self):
+        """What a state can say about itself: its grid partners (if any) are -1 or particle indices, where known
+        now. Everything against a model is checked where the state is used (`check_state`)."""
+        if self.contact_partners is not None:
+            check_partners("State", "contact_partners", self.contact_partners)
 
     def __repr__(self):
         extra = "" if self.contact_n is None else f", contact_n={jnp.shape(self.contact_n)}"
@@ -182,31 +226,53 @@ def check_state(owner: str, model: Model, state: State) -> None:
                             "make states with jc.build or a scene, or wrap values in jnp.asarray")
         if not jnp.issubdtype(jnp.result_type(a), jnp.floating):
             raise TypeError(f"{owner}: `state.{name}` must hold floating-point numbers, got dtype {jnp.result_type(a)}")
+    check_simulation_dtype(owner, "state.x", jnp.result_type(state.x))
     check_shape(owner, "state.x", state.x, (t.n, t.dim))
     check_shape(owner, "state.v", state.v, (t.n, t.dim))
     check_shape(owner, "state.lam", state.lam, (t.m,))
     names = ["x", "v", "lam"]
     c = model.contact
+    other = " (is it a state of another model? this model has {})".format(
+        "no contacts" if c is None else f"{c.k} contact slots: {c!r}")
     for name, shape in (("contact_n", None if c is None else (c.k,)),
                         ("contact_t", None if c is None else (c.k, t.dim))):
         a = getattr(state, name)
         if a is None:
             continue
         if shape is None:
-            raise ValueError(f"{owner}: `state.{name}` is set but the model has no contacts")
+            raise ValueError(f"{owner}: `state.{name}` is set but the model has no contacts (is it a state of "
+                             "another model?)")
         if not hasattr(a, "dtype") or not jnp.issubdtype(jnp.result_type(a), jnp.floating):
             raise TypeError(f"{owner}: `state.{name}` must be a floating-point array")
-        check_shape(owner, f"state.{name}", a, shape)
+        check_shape(owner, f"state.{name}", a, shape, hint=other)
         names.append(name)
     for name in names:
         check_values(owner, f"state.{name}", getattr(state, name))
     p = state.contact_partners
     if p is not None:
         if c is None or not c.has_grid:
-            raise ValueError(f"{owner}: `state.contact_partners` is set but the model has no neighbour grid")
-        if not hasattr(p, "dtype") or not jnp.issubdtype(jnp.result_type(p), jnp.integer):
-            raise TypeError(f"{owner}: `state.contact_partners` must be an integer array")
-        check_shape(owner, "state.contact_partners", p, (t.n, c.grid_k))
+            raise ValueError(f"{owner}: `state.contact_partners` is set but the model has no neighbour grid (is it "
+                             "a state of another model?)")
+        check_shape(owner, "state.contact_partners", p, (t.n, c.grid_k), hint=other)
+        check_partners(owner, "state.contact_partners", p)
+
+
+def check_partners(owner: str, name: str, partners) -> None:
+    """A neighbour grid's partners [..., n, K]: integers, each -1 (an empty slot) or another particle's index
+    (0 <= j < n, j != the row's particle), where known now."""
+    if not hasattr(partners, "dtype") or not jnp.issubdtype(jnp.result_type(partners), jnp.integer):
+        raise TypeError(f"{owner}: `{name}` must be an integer array (-1 or a particle index per slot), got "
+                        f"{getattr(partners, 'dtype', type(partners).__name__)}")
+    p = concrete(partners)
+    if p is None or np.ndim(p) < 2:
+        return
+    n = p.shape[-2]
+    rows = np.arange(n).reshape((n, 1))
+    bad = (p < -1) | (p >= n) | (p == rows)
+    if bad.any():
+        idx = tuple(np.argwhere(bad)[0].tolist())
+        raise ValueError(f"{owner}: `{name}` must hold -1 (an empty slot) or the index of another particle "
+                         f"(0 to {n - 1}); entry {list(idx)} is {int(p[idx])}")
 
 
 def _fixed_mask(fixed, n: int) -> np.ndarray:
@@ -310,7 +376,7 @@ def build(
       (model, state).
     """
     check_real("build", "positions", positions)
-    dtype = resolve_dtype("build", dtype, positions)
+    dtype = resolve_dtype("build", dtype, positions, names="`positions`")
     x = jnp.asarray(positions).astype(dtype)
     if x.ndim != 2 or x.shape[1] not in (2, 3):
         raise ValueError(f"build: `positions` must have shape [n, 2] or [n, 3], got {tuple(x.shape)}")
@@ -408,16 +474,7 @@ def _contact_leaves(n, dim, dtype, radius, planes, spheres, friction, restitutio
             check_shape("build", "radius", radius, (n,))
         check_values("build", "radius", radius, nonneg=True)
         r = jnp.broadcast_to(jnp.asarray(radius).astype(dtype), (n,))
-    rc = concrete(r)
-    if len(pairs) and rc is not None:
-        both = rc[pairs[:, 0]] + rc[pairs[:, 1]]
-        if (both <= 0).any():
-            k = int(np.argmax(both <= 0))
-            raise ValueError(f"build: particles {tuple(pairs[k].tolist())} may collide (`collide`) but both have "
-                             "radius 0; give them a `radius` > 0")
-    if grid and rc is not None and np.sum(np.asarray(rc) <= 0) > 1:
-        raise ValueError("build: with the neighbour grid every pair of particles may collide, so at most one "
-                         "particle may have `radius` 0; give them a `radius` > 0")
+    check_contact_radii("build", "radius", concrete(r), pairs, grid)
     normals, offsets = _obstacles("planes", planes, dim, dtype, "(normal, offset)")
     centres, radii = _obstacles("spheres", spheres, dim, dtype, "(centre, R)")
     check_values("build", "spheres' R", radii, positive=True)

@@ -12,7 +12,7 @@ from jax import lax
 from jaxcon.core import layout as L
 from jaxcon.core.checks import check_int, check_real
 from jaxcon.core.contact import MAX_ALL_PAIRS_PARTICLES
-from jaxcon.core.model import Model, State, Trajectory, check_state
+from jaxcon.core.model import Model, State, Trajectory, check_model, check_state
 from jaxcon.core.pytree import concrete
 from jaxcon.core.system import Solver, System
 from jaxcon.solvers import contact as C
@@ -23,6 +23,8 @@ def _check_call(owner, model, state, solver, dt, steps=None):
         raise TypeError(f"{owner}: `model` must be a jaxcon Model, got {type(model).__name__}")
     if not isinstance(solver, Solver):
         raise TypeError(f"{owner}: `solver` must be a jaxcon solver (e.g. jc.PGS()), got {type(solver).__name__}")
+    check_x64(owner, model, state)
+    check_model(owner, model, "model.")
     check_state(owner, model, state)
     check_dt(owner, dt, _dtype(state), getattr(solver, "substeps", 1))
     if steps is not None:
@@ -45,6 +47,23 @@ def _check_call(owner, model, state, solver, dt, steps=None):
     warn = getattr(solver, "_check_stability", None)
     if warn is not None:
         warn(owner, model, dt)
+
+
+def check_x64(owner, model, state):
+    """Refuse a model or state holding 64-bit JAX arrays while `jax_enable_x64` is off: they were made with x64 on,
+    and JAX would silently compute them in 32 bits. (32-bit models run in their own dtype under x64.)"""
+    if jax.config.jax_enable_x64:
+        return
+    for what, obj in (("model", model), ("state", state)):
+        if not isinstance(obj, (Model, State)):
+            continue
+        for leaf in jax.tree.leaves(obj):
+            if isinstance(leaf, jax.Array) and not isinstance(leaf, jax.core.Tracer) and leaf.dtype.itemsize == 8:
+                raise ValueError(
+                    f"{owner}: the {what} holds {leaf.dtype} arrays, made while jax_enable_x64 was on, but "
+                    "jax_enable_x64 is off now, so JAX would compute them in 32 bits. Rebuild the model and state "
+                    "with the current setting (jc.build or a scene), or turn x64 back on with "
+                    "jax.config.update('jax_enable_x64', True)")
 
 
 def check_dt(owner, dt, dtype, substeps=1):
@@ -240,14 +259,28 @@ def available_memory() -> tuple[int, str] | None:
         return None
 
 
+def record_bytes(model, state, rows, batch=1) -> int:
+    """Bytes of a recorded trajectory of `rows` rows: x, v [n, dim] and lam [m] in the state's dtype; with
+    contacts contact_n [k] and contact_t [k, dim]; with a neighbour grid contact_partners [n, K] and
+    contact_overflow (int32)."""
+    itemsize = np.dtype(_dtype(state)).itemsize
+    t, c = model.topology, model.contact
+    floats = 2 * t.n * t.dim + t.m
+    ints = 0
+    if c is not None:
+        floats += c.k * (1 + t.dim)
+        if c.has_grid:
+            ints += t.n * c.grid_k + 1
+    return batch * rows * (floats * itemsize + ints * 4)
+
+
 def check_record_memory(owner, model, state, steps, save_every, batch=1):
     """Refuse, before compiling, a rollout whose recorded trajectory cannot fit in memory. The record holds
-    steps // save_every rows of x, v [n, dim] and lam [m]; putting it back into the user's particle and
-    constraint order makes one more copy, so twice its size must fit. Inside `jax.vmap` the batch size is not
-    known here and is not counted."""
+    steps // save_every rows of every recorded array (`record_bytes`); putting it back into the user's particle
+    and constraint order makes one more copy, so twice its size must fit. Inside `jax.vmap` the batch size is
+    not known here and is not counted."""
     rows = steps // save_every
-    itemsize = np.dtype(_dtype(state)).itemsize
-    need = 2 * batch * rows * (2 * model.n_particles * model.dim + model.n_constraints) * itemsize
+    need = 2 * record_bytes(model, state, rows, batch)
     avail = available_memory()
     if avail is not None and need > avail[0]:
         gb = 1024 ** 3

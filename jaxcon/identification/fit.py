@@ -55,10 +55,14 @@ class FitResult(NamedTuple):
                      continuity penalty with windows) of each iterate, whatever the stage's horizon.
       iterations:    number of optimiser updates made.
       converged:     True only if the last stage (the whole record) stopped at its tolerance: no relative
-                     improvement > tol for `patience` updates. False when it ran out of `steps`, hit a
-                     non-finite loss, or never reached the whole record.
+                     improvement > tol for `patience` updates, and the result's loss is not above the initial
+                     guess's. False when it ran out of `steps`, hit a non-finite loss or gradient, ended above
+                     its starting loss, or never reached the whole record.
       window_states: the fitted start states of windows 1.. (multiple shooting), else None.
-      reason:        why it stopped: "tolerance", "max_steps" or "non-finite loss".
+      reason:        why it stopped: "tolerance", "max_steps", "non-finite loss", "non-finite gradient" (a NaN
+                     or inf gradient, or Levenberg-Marquardt Jacobian, at the last iterate: the fit stops there
+                     instead of following it) or "loss increased" (the returned iterate's whole-record loss is
+                     above the initial guess's; the model returned is that iterate all the same).
       horizons:      [iterations] the fitted horizon (steps) of each update's stage.
     """
 
@@ -111,9 +115,11 @@ def _tree_replace(obj, changes):
     return jax.tree_util.tree_unflatten(treedef, new)
 
 
-def _kind(name, value, transforms):
+def _kind(name, value, transforms, bounds=()):
     if name in transforms:
         return transforms[name]
+    if name in bounds:          # bounds keep the value inside them: the logistic map onto (lo, hi)
+        return "logit"
     if name in TRANSFORMS:
         return TRANSFORMS[name]
     a = np.asarray(value)
@@ -328,8 +334,10 @@ def fit(
       tol, patience: a stage ends when its best loss has not improved by a relative `tol` for `patience`
         updates.
       progress: write a progress bar with the stage's horizon and loss to stderr.
-      transforms: {name: 'log' | 'logit' | 'identity'} overriding `TRANSFORMS`.
-      bounds: {name: (lo, hi)} for 'logit' parameters (default (0, 1)).
+      transforms: {name: 'log' | 'logit' | 'identity'} overriding `TRANSFORMS`. Every key must be in `params`.
+      bounds: {name: (lo, hi)}, finite with lo < hi, for 'logit' parameters (default (0, 1)); a parameter
+        given bounds and no transform uses 'logit'. Every key must be in `params`, and the initial value
+        within its bounds (a value on a bound starts 1e-6 of the range inside it).
       checkpoint: passed to `rollout` (reverse-mode memory for long horizons).
       horizon: "grow" (default), "full" (one stage: the whole record), or increasing step counts of the
         stages (the whole record is appended as the last stage if missing).
@@ -342,7 +350,8 @@ def fit(
     params = _param_names(params)
     ob = _observations(model, state, observed, observed_particles, sample_steps)
     stages = _schedule(horizon, ob.T)
-    spec, u0 = _parameters(params, model, solver, state, dict(transforms or {}), dict(bounds or {}))
+    transforms, bounds = _check_transforms_and_bounds(params, transforms, bounds)
+    spec, u0 = _parameters(params, model, solver, state, transforms, bounds)
     problem = _Problem(model, solver, ob, spec, jnp.asarray(dt).astype(jnp.result_type(state.x)), checkpoint,
                        _windows(window, ob.T), float(continuity))
     state_b = _as_batched_state(state, ob.batched)
@@ -366,6 +375,44 @@ def shard_batch(data, batch):
         return data
     sharding = NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch"))
     return jax.tree.map(lambda a: jax.device_put(a, sharding) if jnp.ndim(a) and a.shape[0] == batch else a, data)
+
+
+_KINDS = ("log", "logit", "identity")
+
+
+def _check_transforms_and_bounds(params, transforms, bounds):
+    """`transforms` {name: kind} and `bounds` {name: (lo, hi)} as dicts, checked: every key a fitted parameter (a
+    typo would otherwise be ignored), kinds known, bounds finite with lo < hi, and only on 'logit' parameters
+    (the only transform that keeps a value inside bounds). Returns (transforms, bounds) with float bounds."""
+    out = []
+    for arg, given in (("transforms", transforms), ("bounds", bounds)):
+        if given is None:
+            out.append({})
+            continue
+        if not isinstance(given, dict):
+            raise TypeError(f"fit: `{arg}` must be a dict {{parameter name: ...}}, got {type(given).__name__}")
+        for key in given:
+            if key not in params:
+                raise ValueError(f"fit: `{arg}` has the key {key!r}, which is not a fitted parameter (`params` is "
+                                 f"{params})")
+        out.append(dict(given))
+    transforms, bounds = out
+    for name, kind in transforms.items():
+        if kind not in _KINDS:
+            raise ValueError(f"fit: `transforms[{name!r}]` must be 'log', 'logit' or 'identity', got {kind!r}")
+    checked = {}
+    for name, pair in bounds.items():
+        try:
+            lo, hi = (float(np.asarray(b)) for b in pair)
+        except (TypeError, ValueError):
+            raise ValueError(f"fit: `bounds[{name!r}]` must be a pair of numbers (lo, hi), got {pair!r}") from None
+        if not (np.isfinite(lo) and np.isfinite(hi)) or lo >= hi:
+            raise ValueError(f"fit: `bounds[{name!r}]` must be finite with lo < hi, got ({lo}, {hi})")
+        if transforms.get(name, "logit") != "logit":
+            raise ValueError(f"fit: `bounds[{name!r}]` would be ignored: only the 'logit' transform keeps a value "
+                             f"inside bounds, and `transforms[{name!r}]` is {transforms[name]!r}")
+        checked[name] = (lo, hi)
+    return transforms, checked
 
 
 def _param_names(params) -> tuple:
@@ -406,16 +453,30 @@ def _parameters(params, model, solver, state, transforms, bounds):
         if value is None:
             raise ValueError(f"fit: `{name}` is not set on this model (contact parameters exist only on models "
                              "built with `planes`, `spheres` or `collide`)")
-        kind = _kind(name, value, transforms)
+        kind = _kind(name, value, transforms, bounds)
         lo, hi = bounds.get(name, (0.0, 1.0))
-        if kind == "log" and name != "inv_mass" and np.any(np.asarray(value) == 0):
-            raise ValueError(
-                f"fit: `{name}` starts at 0, where its log parameterisation cannot move (it would stay 0); "
-                f"start from a small positive value (e.g. {name}=1e-8), or pass transforms={{{name!r}: 'identity'}}")
+        _check_start(name, value, kind, lo, hi)
         u, mask = _encode(value, kind, lo, hi)
         spec[name] = _Param(kind, jnp.asarray(mask), jnp.asarray(value).astype(dtype), float(lo), float(hi))
         u0[name] = jnp.asarray(u).astype(dtype)
     return spec, u0
+
+
+def _check_start(name, value, kind, lo, hi):
+    """The initial value must be one its transform can represent and move: log > 0 (a fixed particle's inverse
+    mass, 0, stays 0), logit within [lo, hi] (a value on a bound starts 1e-6 of the range inside it)."""
+    v = np.asarray(value, np.float64)
+    if kind == "log" and name != "inv_mass" and np.any(v == 0):
+        raise ValueError(
+            f"fit: `{name}` starts at 0, where its log parameterisation cannot move (it would stay 0); "
+            f"start from a small positive value (e.g. {name}=1e-8), or pass transforms={{{name!r}: 'identity'}}")
+    if kind == "log" and np.any(v < 0):
+        raise ValueError(f"fit: `{name}` has a negative initial value, which its log parameterisation cannot "
+                         f"represent; pass transforms={{{name!r}: 'identity'}}")
+    if kind == "logit" and np.any((v < lo) | (v > hi)):
+        bad = v[(v < lo) | (v > hi)].ravel()[0]
+        raise ValueError(f"fit: `{name}` starts at {bad:g}, outside its bounds ({lo:g}, {hi:g}); start inside them "
+                         f"or pass bounds={{{name!r}: (lo, hi)}} that contain it")
 
 
 def _windows(window, T):
@@ -517,6 +578,7 @@ def _lm_update(problem):
 
         J, (r, full) = jax.jacfwd(with_aux, has_aux=True)(z0)
         value = jnp.sum(r * r)
+        finite = jnp.all(jnp.isfinite(J))        # a non-finite Jacobian: every step would be refused forever
         A, g = J.T @ J, J.T @ r
         D = jnp.diag(jnp.diag(A)) + jnp.finfo(r.dtype).eps * jnp.eye(len(z0), dtype=r.dtype)
         dz = -jnp.linalg.solve(A + mu * D, g)
@@ -524,7 +586,7 @@ def _lm_update(problem):
         ok = jnp.isfinite(new) & (new < value)
         z = jnp.where(ok, z0 + dz, z0)
         mu = jnp.where(ok, jnp.maximum(mu / 3, 1e-12), mu * 4)
-        return unravel(z), mu, value, full
+        return unravel(z), mu, value, full, finite
 
     return update
 
@@ -539,7 +601,10 @@ def _optax_update(problem, opt):
         (value, full), grad = jax.value_and_grad(stage_loss, has_aux=True)(u, data, horizon)
         upd, opt_state = opt.update(grad, opt_state, u, value=value, grad=grad,
                                     value_fn=lambda v: stage_loss(v, data, horizon)[0])
-        return optax.apply_updates(u, upd), opt_state, value, full
+        finite = jnp.all(jnp.isfinite(jax.flatten_util.ravel_pytree(grad)[0]))
+        return optax.apply_updates(u, upd), opt_state, value, full, finite
+
+    return update
 
     return update
 
@@ -547,19 +612,23 @@ def _optax_update(problem, opt):
 def _run_stages(update, init, u, data, stages, steps, tol, patience, progress):
     """Run the optimiser stage by stage, each from the previous stage's best point with a fresh optimiser state
     (`init(u)`: Adam's moments from a shorter horizon only push it around). Returns (best u of the last stage
-    run, history of whole-record losses, stage horizon of each update, reason, converged)."""
+    run, history of whole-record losses, stage horizon of each update, reason, converged).
+
+    It stops at a non-finite loss or gradient (reason "non-finite loss" / "non-finite gradient"), and when the
+    returned iterate's whole-record loss is above the initial guess's, the reason is "loss increased"; in
+    those cases `converged` is False whatever the tolerance said."""
     history, horizons = [], []
     t0 = time.perf_counter()
-    reason, converged, best_u = "max_steps", False, u
+    reason, converged, best_u, best_full = "max_steps", False, u, np.inf
     for k, h in enumerate(stages):
         last = k == len(stages) - 1
         # earlier stages get an equal share of half the budget; the last stage gets the rest
         budget = steps - len(history) if last else max(1, steps // (2 * (len(stages) - 1)))
         budget = min(budget, steps - len(history))
-        best, best_u, since = np.inf, u, 0
+        best, best_u, best_full, since = np.inf, u, np.inf, 0
         h_arr, opt_state = jnp.asarray(h), init(u)
         for _ in range(budget):
-            u_new, opt_state, value, full = update(u, opt_state, data, h_arr)
+            u_new, opt_state, value, full, finite = update(u, opt_state, data, h_arr)
             value, full = float(value), float(full)        # the losses of `u` (before this update)
             history.append(full)
             horizons.append(h)
@@ -568,7 +637,10 @@ def _run_stages(update, init, u, data, stages, steps, tol, patience, progress):
                 break
             since = 0 if (value < best * (1 - tol) or not np.isfinite(best)) else since + 1
             if value < best:
-                best, best_u = value, u
+                best, best_u, best_full = value, u, full
+            if not bool(finite):                          # the update would follow a NaN / inf gradient
+                reason = "non-finite gradient"
+                break
             u = u_new
             if progress and (len(history) % max(1, steps // 100) == 0):
                 _progress(len(history) - 1, steps, full, t0, h)
@@ -577,8 +649,10 @@ def _run_stages(update, init, u, data, stages, steps, tol, patience, progress):
                     reason, converged = "tolerance", True
                 break
         u = best_u
-        if reason == "non-finite loss" or len(history) >= steps:
+        if reason.startswith("non-finite") or len(history) >= steps:
             break
+    if not reason.startswith("non-finite") and best_full > history[0]:
+        reason, converged = "loss increased", False
     if progress:
         _progress(len(history) - 1, steps, history[-1], t0, horizons[-1])
         sys.stderr.write(f"  [{reason}]\n")
