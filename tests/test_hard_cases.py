@@ -259,3 +259,19 @@ def test_soak_100k_steps(solver):
     assert not bool(d.diverged), int(d.first_bad)
     assert float(np.max(d.violation)) < 0.05
     assert float(np.max(d.energy_gain)) < 0.05
+
+
+@pytest.mark.parametrize("rest, x1", [((0.0, 1.0), (0.0, 0.0)), ((0.0, 1.0), (0.1, 0.0)), ((0.5, 0.0), None)],
+                         ids=["coincident", "apart", "end"])
+def test_rattle_survives_a_rod_of_rest_length_zero(rest, x1):
+    """A rod of rest length 0 (two particles held together) has no direction at its solution, where SHAKE's
+    step along the start-of-step direction divides by d . n0: RATTLE flung such a pendulum to 1e44 m. Now it
+    swings like PGS's (float64, 1 s at 240 Hz): the pair stays together, the other rod at its length."""
+    x = np.array([[0.0, 0.0], x1 if x1 is not None else (0.5, 0.0), (1.0, 0.0) if x1 is not None else (0.5, 0.0)])
+    model, state = jc.build(x, [1.0, 1.0, 1.0], rods=[(0, 1), (1, 2)], fixed=[0], rest_lengths=rest)
+    final, traj = jc.rollout(model, state, jc.RATTLE(), 1 / 240, 240)
+    ref, _ = jc.rollout(model, state, jc.PGS(20), 1 / 240, 240)
+    zero = 0 if rest[0] == 0 else 1
+    assert float(jnp.max(jnp.abs(traj.x))) < 1.01
+    assert float(jnp.linalg.norm(final.x[zero + 1] - final.x[zero])) < 1e-3      # held together
+    assert float(jnp.max(jnp.abs(final.x - ref.x))) < 0.02                       # the same swing as PGS

@@ -126,3 +126,54 @@ def test_star_colouring():
     coloured, _ = jc.build(np.asarray(_hub(12)[1].x), np.ones(13), rods=[(0, k + 1) for k in range(12)],
                            colouring=np.arange(12))
     assert not coloured.topology.has_stars
+
+
+def _tethered_cloth(n=24, tethers=250):
+    """Issue 22's scene: an n x n cloth with `tethers` rods from one fixed anchor above it to random cloth
+    particles (3-D)."""
+    pairs, _ = jc.scenes.cloth_edges(n, n)
+    g = np.stack(np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n)), -1).reshape(-1, 2)
+    x = np.concatenate([np.concatenate([g, np.zeros((n * n, 1))], 1), [[0.5, 0.5, 1.0]]])
+    tether = [(n * n, int(k)) for k in np.random.default_rng(0).choice(n * n, tethers, replace=False)]
+    return x, np.concatenate([pairs, tether])
+
+
+def test_constraints_sharing_a_fixed_particle_share_colours_and_auto_stays_compact():
+    """A 24x24 cloth with a 250-rod tether got the unrolled layout with 252 colours (one per tether rod: they
+    share the anchor): its first rollout ran for minutes and gigabytes. A fixed particle never moves, so the
+    colouring lets constraints share it; the cloth particles a tether makes hubs (degree 9) become stars; and
+    'auto' takes the compact layout above 12 colours whatever their width. The program is small (its size is a
+    fact of the trace, not a timing)."""
+    x, rods = _tethered_cloth()
+    model, state = jc.build(x, np.ones(len(x)), rods=rods, fixed=[len(x) - 1])
+    t = model.topology
+    assert t.compact and t.n_colours <= 20, t
+    lowered = jax.jit(lambda s: jc.rollout(model, s, jc.PGS(10), 1 / 60, 4)).lower(state)
+    assert lowered.as_text().count("\n") < 3000
+    final, _ = jc.rollout(model, state, jc.PGS(10), 1 / 60, 4)
+    assert np.isfinite(np.asarray(final.x)).all()
+    # more than 12 colours of any width: compact (here 24 colours of about 140 rods, given explicitly)
+    pairs, colour = jc.scenes.cloth_edges(24, 24)
+    split = colour * 3 + np.arange(len(colour)) % 3
+    many, _ = jc.build(x[:-1], np.ones(len(x) - 1), rods=pairs, colouring=split)
+    wide, _ = jc.build(x[:-1], np.ones(len(x) - 1), rods=pairs)                    # 8 colours of up to 276
+    assert many.topology.compact and not wide.topology.compact
+
+
+def test_a_fixed_particle_stays_fixed():
+    """The colouring relies on which particles were fixed when the model was built: freeing one afterwards is
+    refused (its constraints may share a colour), naming the argument."""
+    x, rods = _tethered_cloth(4, 6)
+    model, _ = jc.build(x, np.ones(len(x)), rods=rods, fixed=[len(x) - 1])
+    with pytest.raises(ValueError, match=r"inv_mass\[16\].*fixed when the model was built"):
+        model.replace(inv_mass=jnp.ones(len(x)))
+    model.replace(inv_mass=model.inv_mass * 2)                # changing the free masses is fine
+
+
+def test_jacobi_relaxation_counts_free_particles_only():
+    """Jacobi's default relaxation is 1 / (largest number of constraints at a free particle): a fixed anchor
+    with 250 tethers does not slow every other row down 250 times."""
+    from jaxcon.solvers.jacobi import max_degree
+    x, rods = _tethered_cloth()
+    model, _ = jc.build(x, np.ones(len(x)), rods=rods, fixed=[len(x) - 1])
+    assert max_degree(model.topology) == 9             # a cloth particle's 8 rods and its tether

@@ -44,6 +44,8 @@ def batch_minor_topology(t: Topology, batch: int) -> Topology:
     out.n, out.dim, out.m = t.n * B, t.dim, t.m * B
     out.i, out.j = rep(t.i), rep(t.j)
     out.is_rope, out.colour = np.repeat(t.is_rope, B), np.repeat(t.colour, B)
+    out.fixed = np.repeat(t.fixed, B)                   # copy b of particle p is p * B + b
+    out.star, out.has_stars = np.full(out.m, -1, np.int64), False     # star models are batched with vmap
     out.view = t.view + (B,)
     out.has_ropes, out.has_rods = t.has_ropes, t.has_rods
     out.pos = None if t.pos is None else rep(t.pos).astype(np.int32)
@@ -65,7 +67,7 @@ def batch_minor_topology(t: Topology, batch: int) -> Topology:
                                 StaticArray(rep(b.j_idx.array).astype(np.int32)),
                                 StaticArray(src_b.astype(np.int32)), rope, b.all_rope))
     out.blocks = tuple(blocks)
-    for a in (out.i, out.j, out.is_rope, out.colour):
+    for a in (out.i, out.j, out.is_rope, out.colour, out.fixed, out.star):
         a.setflags(write=False)
     out._key = ("batch-minor", B, t._key)
     out._hash = hash(out._key)

@@ -71,7 +71,7 @@ def constraints_concat(topo: Topology, blocks, like=None):
     flat = []
     for x, b in zip(blocks, topo.blocks):
         if b.table or b.star:
-            flat.append(jnp.take(x.reshape(x.shape[:-2] + (-1,)), b.flat.array, axis=-1))
+            flat.append(jnp.take(x.reshape(x.shape[: x.ndim - len(b.shape)] + (-1,)), b.flat.array, axis=-1))
         else:
             flat.append(x.reshape(x.shape[: x.ndim - len(b.shape)] + (b.size,)))
     return flat[0] if len(flat) == 1 else jnp.concatenate(flat, axis=-1)
@@ -163,6 +163,23 @@ class Row:
         return self.all_rope or self.rope is not None
 
 
+class StarRow:
+    """One colour of a star block inside `each_colour`'s scan: traced hubs [H], other particles [H, S] (padding:
+    index n) and rope mask."""
+
+    strided = False
+    table = False
+    star = True
+
+    def __init__(self, hub, j, rope, all_rope):
+        self.hub, self.j_idx, self.all_rope = _Mask(hub), _Mask(j), all_rope
+        self.rope = None if rope is None else _Mask(rope)
+
+    @property
+    def has_rope(self) -> bool:
+        return self.all_rope or self.rope is not None
+
+
 def each_colour(block, fn, carry, rows):
     """Gauss-Seidel over the colours of `block`: ``carry, out = fn(carry, colour, rows)``, colour by colour.
 
@@ -170,6 +187,16 @@ def each_colour(block, fn, carry, rows):
     so fn runs once on it. A table block (compact layout) runs fn on each of its rows, in order, in a
     `lax.scan`: `colour` is then a `Row` and every leaf of `rows` is that row, [..., width]. `out` (a pytree of
     per-constraint arrays of the colour) is stacked back to [..., *block.shape]."""
+    if getattr(block, "star", False):          # a star block: its colours [C, H, S], one after another
+        rope = None if block.rope is None else block.rope.array
+        xs = (block.hub.array, block.j_idx.array, rope, jax.tree.map(lambda a: jnp.moveaxis(a, -3, 0), rows))
+
+        def star_body(carry, x):
+            hub, j, r, row = x
+            return fn(carry, StarRow(hub, j, r, block.all_rope), row)
+
+        carry, out = lax.scan(star_body, carry, xs)
+        return carry, jax.tree.map(lambda a: jnp.moveaxis(a, 0, -3), out)
     if not block.table:
         return fn(carry, block, rows)
     rope = None if block.rope is None else block.rope.array
@@ -197,7 +224,7 @@ def _indices(block):
 
 
 def _star_real(topo, block):
-    """[H, S] bool: the spokes of a star block that are constraints (not padding)."""
+    """[(C,) H, S] bool: the spokes of a star block (or `StarRow`) that are constraints (not padding)."""
     return block.j_idx.array < topo.n
 
 
@@ -207,8 +234,8 @@ def gather_pair(topo: Topology, block: Block, x):
     its padding (so a padding spoke has no direction, no mass and no effective mass)."""
     if getattr(block, "star", False):
         flat = _flat(topo, x)
-        xj = jnp.take(flat, block.j_idx.array, axis=-1, mode="fill", fill_value=0)        # [..., H, S]
-        xi = jnp.take(flat, block.hub.array, axis=-1)[..., None]
+        xj = jnp.take(flat, block.j_idx.array, axis=-1, mode="fill", fill_value=0)        # [..., (C,) H, S]
+        xi = jnp.take(flat, block.hub.array, axis=-1, mode="fill", fill_value=0)[..., None]
         return jnp.where(_star_real(topo, block), xi, 0), xj
     if block.table or isinstance(block, Row):
         both = jnp.take(_flat(topo, x), _indices(block), axis=-1, mode="fill", fill_value=0)   # one gather
@@ -227,7 +254,8 @@ def scatter_pair(topo: Topology, block: Block, p_i, p_j):
     (strided blocks) or a gather (gather blocks). A table block (every colour at once) sums with a scatter-add.
     """
     if block.table or isinstance(block, Row) or getattr(block, "star", False):
-        lead = p_i.shape[: p_i.ndim - (2 if block.table or getattr(block, "star", False) else 1)]
+        lead = p_i.shape[: p_i.ndim - (len(block.j_idx.array.shape) if getattr(block, "star", False) else
+                                       2 if block.table else 1)]
         return add_pair(topo, block, jnp.zeros(lead + topo.view, p_i.dtype), p_i, p_j)
     if block.strided:
         return _box_pad(p_i, block.i_box, topo.view) + _box_pad(p_j, block.j_box, topo.view)
@@ -241,7 +269,7 @@ def add_pair(topo: Topology, block: Block, v, p_i, p_j):
     """v + `scatter_pair(topo, block, p_i, p_j)`. Table blocks and rows add in place (a scatter-add that drops
     the padding); a table block may hold a particle in several rows, and the contributions sum."""
     if getattr(block, "star", False):        # each hub takes the sum of its spokes, each other particle its own
-        flat = _flat(topo, v).at[..., block.hub.array].add(jnp.sum(p_i, axis=-1))
+        flat = _flat(topo, v).at[..., block.hub.array].add(jnp.sum(p_i, axis=-1), mode="drop")
         return flat.at[..., block.j_idx.array].add(p_j, mode="drop").reshape(v.shape)
     if not (block.table or isinstance(block, Row)):
         return v + scatter_pair(topo, block, p_i, p_j)

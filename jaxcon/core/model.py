@@ -112,6 +112,12 @@ def check_model(owner: str, model, prefix: str = "") -> None:
                               ("gravity", (t.dim,), False)):
         check_shape(owner, prefix + name, getattr(model, name), shape)
         check_values(owner, prefix + name, getattr(model, name), nonneg=sign)
+    w = concrete(model.inv_mass)
+    if w is not None and t.fixed.any() and (np.asarray(w)[t.fixed] != 0).any():
+        p = int(np.flatnonzero(t.fixed & (np.asarray(w) != 0))[0])
+        raise ValueError(f"{owner}: `{prefix}inv_mass[{p}]` is {float(np.asarray(w)[p])}, but particle {p} was fixed "
+                         "when the model was built, and its colouring lets constraints that share a fixed particle "
+                         "be solved together; build the model again with that particle free")
     _check_contact_leaves(owner, model, prefix)
 
 
@@ -355,7 +361,10 @@ def build(
       layout: 'compact' (every colour in one table whose rows a sweep visits in a loop: gradients compile 3
         to 4x faster, and run slower), 'unrolled' (one block per colour, each compiled separately: the fastest
         run time), or 'auto' (default): compact with at least 4 colours and at most 256 constraints in any
-        colour, such as a 16x16 cloth. Static. Results agree to rounding (docs/performance.md).
+        colour, such as a 16x16 cloth, or with more than 12 colours whatever their size (the unrolled layout's
+        compile time grows with its colours). Static. Results agree to rounding (docs/performance.md). A
+        particle with 9 or more constraints is a hub, whose constraints are solved together (docs/solvers.md,
+        "Hubs"); constraints that share only a fixed particle may share a colour.
       dtype: float dtype of the model and state. None: the dtype of `positions` when it is a floating-point
         array, else JAX's default float dtype (float64 under `jax_enable_x64`, float32 otherwise).
 
@@ -375,15 +384,8 @@ def build(
     Returns:
       (model, state).
     """
-    check_real("build", "positions", positions)
-    dtype = resolve_dtype("build", dtype, positions, names="`positions`")
-    x = jnp.asarray(positions).astype(dtype)
-    if x.ndim != 2 or x.shape[1] not in (2, 3):
-        raise ValueError(f"build: `positions` must have shape [n, 2] or [n, 3], got {tuple(x.shape)}")
+    x, dtype = _positions(positions, dtype)
     n, dim = x.shape
-    if n < 1:
-        raise ValueError("build: `positions` must hold at least one particle")
-    check_values("build", "positions", x)
     is_fixed = _fixed_mask(fixed, n)
     inv_mass = _inverse_masses(masses, is_fixed, dtype)
 
@@ -399,11 +401,24 @@ def build(
     rest = _rest_lengths(rest_lengths, positions, x, i, j, dtype)
     v = _velocities(velocities, x)
     g = _gravity("build", gravity, dim, dtype)
-    topo = _topology(n, dim, i, j, is_rope, colouring, grid_shape, layout)
+    topo = _topology(n, dim, i, j, is_rope, colouring, grid_shape, layout, is_fixed)
     contact = dict(radius=radius, planes=planes, spheres=spheres, friction=friction, restitution=restitution,
                    threshold=restitution_threshold)
     return _with_contacts(Model(inv_mass, rest, g, topo), State(x, v, jnp.zeros(m, dtype)), contact_pairs_,
                           has_contacts, grid=(grid_k, pairs), **contact)
+
+
+def _positions(positions, dtype):
+    """`build`'s positions, checked, as an [n, dim] array in the model's dtype, and that dtype."""
+    check_real("build", "positions", positions)
+    dtype = resolve_dtype("build", dtype, positions, names="`positions`")
+    x = jnp.asarray(positions).astype(dtype)
+    if x.ndim != 2 or x.shape[1] not in (2, 3):
+        raise ValueError(f"build: `positions` must have shape [n, 2] or [n, 3], got {tuple(x.shape)}")
+    if x.shape[0] < 1:
+        raise ValueError("build: `positions` must hold at least one particle")
+    check_values("build", "positions", x)
+    return x, dtype
 
 
 def _constraint_pairs(rods, ropes, n):
@@ -585,23 +600,24 @@ def _gravity(owner, gravity, dim, dtype):
     return jnp.asarray(gravity).astype(dtype)
 
 
-def _topology(n, dim, i, j, is_rope, colouring, grid_shape, layout) -> Topology:
-    """`build`'s static topology: the colouring (checked, or the default with hub stars) and the layout."""
-    colour, star = _colouring(colouring, i, j, n)
-    return Topology(n, dim, i, j, is_rope, colour, _view(grid_shape, n), layout, star=star)
+def _topology(n, dim, i, j, is_rope, colouring, grid_shape, layout, fixed) -> Topology:
+    """`build`'s static topology: the colouring (checked, or the default with hub stars; constraints of one
+    colour may share a fixed particle) and the layout."""
+    colour, star = _colouring(colouring, i, j, n, fixed)
+    return Topology(n, dim, i, j, is_rope, colour, _view(grid_shape, n), layout, star=star, fixed=fixed)
 
 
-def _colouring(colouring, i, j, n):
+def _colouring(colouring, i, j, n, fixed):
     """(colour [m], star [m]): the default colouring with stars around hubs (`star_colouring`), or the user's
     (checked; no stars)."""
     if colouring is None:
-        star, colour = star_colouring(i, j, n)
+        star, colour = star_colouring(i, j, n, fixed)
         return colour, star
     colour = np.asarray(colouring)
     check_shape("build", "colouring", colour, (len(i),))
     if colour.dtype.kind not in "iu" or (colour < 0).any():
         raise ValueError("build: `colouring` must hold non-negative integers")
-    check_colouring(i, j, colour, n)
+    check_colouring(i, j, colour, n, fixed)
     return colour, None
 
 

@@ -36,13 +36,16 @@ import numpy as np
 from jaxcon.core.pytree import StaticArray
 
 
-def greedy_colouring(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
-    """Greedy edge colouring in the given order: smallest colour not used at either endpoint."""
+def greedy_colouring(i: np.ndarray, j: np.ndarray, n: int, fixed=None) -> np.ndarray:
+    """Greedy edge colouring in the given order: smallest colour not used at either endpoint. Endpoints marked
+    in `fixed` ([n] bool, default none) never conflict: a fixed particle does not move, so any number of
+    constraints of one colour may share it."""
     colour = np.empty(len(i), dtype=np.int64)
     used = [set() for _ in range(n)]
+    free = np.ones(n, bool) if fixed is None else ~np.asarray(fixed, bool)
     for k, (a, b) in enumerate(zip(i.tolist(), j.tolist())):
         c = 0
-        while c in used[a] or c in used[b]:
+        while (free[a] and c in used[a]) or (free[b] and c in used[b]):
             c += 1
         colour[k] = c
         used[a].add(c)
@@ -55,10 +58,11 @@ def greedy_colouring(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
 STAR_MIN_DEGREE = 9
 
 
-def star_colouring(i: np.ndarray, j: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """The default colouring: (star [m], colour [m]).
+def star_colouring(i: np.ndarray, j: np.ndarray, n: int, fixed=None) -> tuple[np.ndarray, np.ndarray]:
+    """The default colouring: (star [m], colour [m]). `fixed` ([n] bool): particles that never move, which no
+    two constraints of a colour conflict over and which are never hubs (their constraints do not couple).
 
-    Hubs (particles with at least `STAR_MIN_DEGREE` constraints), most constraints first, each take the
+    Hubs (free particles with at least `STAR_MIN_DEGREE` constraints), most constraints first, each take the
     constraints at them that no earlier hub took, one per other particle (a duplicated rod stays outside): a
     *star*, whose constraints share only the hub and are solved together, exactly (`layout.block_solve`).
     star[k] is constraint k's star (stars numbered from 0), or -1. Stars are coloured greedily (two stars that
@@ -73,9 +77,10 @@ def star_colouring(i: np.ndarray, j: np.ndarray, n: int) -> tuple[np.ndarray, np
     solved exactly has no such error: the recurrence decays at the Baumgarte rate (docs/hard-cases.md)."""
     i, j = np.asarray(i, np.int64), np.asarray(j, np.int64)
     m = len(i)
+    free = np.ones(n, bool) if fixed is None else ~np.asarray(fixed, bool)
     star = np.full(m, -1, np.int64)
     deg = np.bincount(np.concatenate([i, j]), minlength=n)
-    hubs = [int(p) for p in np.argsort(-deg, kind="stable") if deg[p] >= STAR_MIN_DEGREE]
+    hubs = [int(p) for p in np.argsort(-deg, kind="stable") if deg[p] >= STAR_MIN_DEGREE and free[p]]
     members = []
     for p in hubs:
         ks = np.nonzero(((i == p) | (j == p)) & (star < 0))[0]
@@ -88,7 +93,7 @@ def star_colouring(i: np.ndarray, j: np.ndarray, n: int) -> tuple[np.ndarray, np
     colour = np.full(m, -1, np.int64)
     used = [set() for _ in range(n)]
     for s_id, (p, ks) in enumerate(members):
-        parts = np.unique(np.concatenate([i[ks], j[ks]]))
+        parts = [q for q in np.unique(np.concatenate([i[ks], j[ks]])) if free[q]]
         c = 0
         while any(c in used[q] for q in parts):
             c += 1
@@ -96,22 +101,23 @@ def star_colouring(i: np.ndarray, j: np.ndarray, n: int) -> tuple[np.ndarray, np
         for q in parts:
             used[q].add(c)
     rest = star < 0
-    colour[rest] = greedy_colouring(i[rest], j[rest], n)
+    colour[rest] = greedy_colouring(i[rest], j[rest], n, fixed)
     return star, colour
 
 
-def check_colouring(i: np.ndarray, j: np.ndarray, colour: np.ndarray, n: int) -> None:
-    """Raise ValueError unless no two constraints of the same colour share a particle."""
+def check_colouring(i: np.ndarray, j: np.ndarray, colour: np.ndarray, n: int, fixed=None) -> None:
+    """Raise ValueError unless no two constraints of the same colour share a particle that is not `fixed`."""
+    free = np.ones(n, bool) if fixed is None else ~np.asarray(fixed, bool)
     for c in np.unique(colour):
         sel = colour == c
         ends = np.concatenate([i[sel], j[sel]])
-        counts = np.bincount(ends, minlength=n)
+        counts = np.bincount(ends, minlength=n) * free
         if counts.max(initial=0) > 1:
             p = int(np.argmax(counts))
             ks = np.nonzero(sel & ((i == p) | (j == p)))[0][:2].tolist()
             raise ValueError(
                 f"colouring: constraints {ks} both have colour {int(c)} and share particle {p}; "
-                "constraints of one colour must not share a particle"
+                "constraints of one colour must not share a particle that is not fixed"
             )
 
 
@@ -172,8 +178,14 @@ def _strided_box(coords: np.ndarray) -> Optional[tuple]:
 LAYOUTS = ("auto", "compact", "unrolled")
 #: 'auto' picks the compact layout when the model has at least this many colours ...
 COMPACT_MIN_COLOURS = 4
-#: ... and none of them has more constraints than this (docs/performance.md, "Compact and unrolled layouts").
+#: ... and none of them has more constraints than this (docs/performance.md, "Compact and unrolled layouts"),
 COMPACT_MAX_WIDTH = 256
+#: ... or, whatever their width, more colours than this: the unrolled layout compiles every colour's code
+#: again, so its compile time grows with the colours (24x24 cloth split into 16 / 32 / 64 colours, PGS(10):
+#: 3.1 / 4.1 / 9.9 s unrolled against 0.9 / 0.6 / 1.1 s compact, and 1.2 / 1.8 / 4.8 ms a step against
+#: 1.0 / 1.2 / 1.0; with 252 colours the unrolled rollout took 327 s to compile). Stars (`star_colouring`) are
+#: one scanned block in either layout and are not counted.
+UNROLLED_MAX_COLOURS = 12
 
 
 @dataclasses.dataclass(frozen=True)
@@ -193,8 +205,8 @@ class Block:
     table: bool = False           # compact layout: i_idx, j_idx, src (user constraint index, m where
     #                               padding) are [colours, width], the indices padded with particle index n
     flat: Optional[StaticArray] = None   # table, star: [size] flat positions of the real entries, in block order
-    star: bool = False            # stars of one colour: hub [H] and j_idx, src [H, S] (the other particles and
-    hub: Optional[StaticArray] = None    # user constraint indices of each star's spokes, padded with n and m)
+    star: bool = False            # every star: hub [C, H] and j_idx, src [C, H, S] (colour, star, spoke: the other
+    hub: Optional[StaticArray] = None    # particles and user constraint indices, padded with n and m)
 
     @property
     def strided(self) -> bool:
@@ -212,7 +224,7 @@ class Topology:
     small models with several colours: `COMPACT_MIN_COLOURS`, `COMPACT_MAX_WIDTH`), 'compact' or 'unrolled'.
     """
 
-    def __init__(self, n, dim, i, j, is_rope, colour, view, layout="auto", star=None):
+    def __init__(self, n, dim, i, j, is_rope, colour, view, layout="auto", star=None, fixed=None):
         self.n = int(n)
         self.dim = int(dim)
         self.i = np.asarray(i, np.int64)
@@ -224,7 +236,10 @@ class Topology:
         # star[k]: constraint k's star (`star_colouring`), -1 if it has none; a star's colour is its own colour set
         self.star = np.full(self.m, -1, np.int64) if star is None else np.asarray(star, np.int64)
         self.has_stars = bool((self.star >= 0).any())
-        for a in (self.i, self.j, self.is_rope, self.colour, self.star):
+        # the particles fixed when the model was built: the colouring may put constraints that share one of them
+        # in one colour, so they must stay fixed (`Model` checks their inverse mass stays 0)
+        self.fixed = np.zeros(self.n, bool) if fixed is None else np.asarray(fixed, bool)
+        for a in (self.i, self.j, self.is_rope, self.colour, self.star, self.fixed):
             a.setflags(write=False)
         self.has_ropes = bool(self.is_rope.any())
         self.has_rods = bool((~self.is_rope).any())
@@ -238,7 +253,7 @@ class Topology:
         self.layout = "compact" if self.compact else "unrolled"
         self._key = (
             self.n, self.dim, self.view, self.i.tobytes(), self.j.tobytes(), self.is_rope.tobytes(),
-            self.colour.tobytes(), self.layout, self.star.tobytes(),
+            self.colour.tobytes(), self.layout, self.star.tobytes(), self.fixed.tobytes(),
         )
         self._hash = hash(self._key)
 
@@ -246,14 +261,15 @@ class Topology:
 
     @property
     def n_colours(self) -> int:
-        return sum(int(b.shape[0]) if b.table else 1 for b in self.blocks)
+        return sum(int(b.shape[0]) if b.table or b.star else 1 for b in self.blocks)
 
     def _small(self) -> bool:
         plain = self.colour[self.star < 0]
         if not len(plain):
             return False
         sizes = np.bincount(np.unique(plain, return_inverse=True)[1])
-        return len(sizes) >= COMPACT_MIN_COLOURS and int(sizes.max()) <= COMPACT_MAX_WIDTH
+        return len(sizes) >= COMPACT_MIN_COLOURS and (int(sizes.max()) <= COMPACT_MAX_WIDTH
+                                                      or len(sizes) > UNROLLED_MAX_COLOURS)
 
     def _compact(self):
         """Replace the colours' blocks by one table block (stars keep theirs, before it): row c holds colour c's
@@ -293,7 +309,7 @@ class Topology:
             return self
         if getattr(self, "_unrolled", None) is None:
             self._unrolled = Topology(self.n, self.dim, self.i, self.j, self.is_rope, self.colour, self.view,
-                                      layout="unrolled", star=self.star)
+                                      layout="unrolled", star=self.star, fixed=self.fixed)
         return self._unrolled
 
     def _choose_layout(self):
@@ -369,45 +385,43 @@ class Topology:
         return tuple(blocks), perm, inv_perm
 
     def _star_blocks(self, pos):
-        """One block per star colour (user particle p at internal flat position pos[p]): [(Block with offset 0,
-        the user constraint indices of its spokes in block order)]. Spokes run from the hub to the other
-        particle, in order of that particle."""
-        out = []
+        """The stars as one block (user particle p at internal flat position pos[p]): [(Block with offset 0, the
+        user constraint indices of its spokes in block order)], or [] without stars. Its arrays are [C, H, S]:
+        star colour, star, spoke; hub [C, H] and the other particles j_idx [C, H, S] are padded with n, src (user
+        constraint index) with m. Spokes run from the hub to the other particle, in order of that particle. The
+        colours are swept one after another in a scan (`layout.each_colour`), so the star code is traced once."""
         if not self.has_stars:
-            return out
+            return []
         to_internal = np.arange(self.n) if pos is None else np.asarray(pos)
         stars = np.unique(self.star[self.star >= 0])
         colour_of = {int(k): int(self.colour[np.argmax(self.star == k)]) for k in stars}
-        for c in sorted(set(colour_of.values())):
-            members = [int(k) for k in stars if colour_of[int(k)] == c]
-            spokes, hubs = [], []
-            for k in members:
-                ks = np.nonzero(self.star == k)[0]
-                ends = np.concatenate([self.i[ks], self.j[ks]])
-                hub = int(np.bincount(ends).argmax()) if len(ks) > 1 else int(self.i[ks[0]])
-                other = np.where(self.i[ks] == hub, self.j[ks], self.i[ks])
-                o = np.argsort(other, kind="stable")
-                spokes.append((ks[o], other[o]))
-                hubs.append(hub)
-            H, S = len(members), max(len(ks) for ks, _ in spokes)
-            J = np.full((H, S), self.n, np.int32)
-            src = np.full((H, S), self.m, np.int32)
-            rope = np.zeros((H, S), bool)
-            for r, (ks, other) in enumerate(spokes):
-                J[r, :len(ks)] = to_internal[other]
-                src[r, :len(ks)] = ks
-                rope[r, :len(ks)] = self.is_rope[ks]
-            real = (src < self.m).reshape(-1)
-            flat = np.nonzero(real)[0].astype(np.int32)
-            ks_all = src.reshape(-1)[flat].astype(np.int64)
-            r_real = rope.reshape(-1)[flat]
-            all_rope = bool(r_real.all())
-            mixed = StaticArray(rope) if r_real.any() and not all_rope else None
-            blk = Block(0, len(flat), (H, S), None, None, None, StaticArray(J), StaticArray(src), mixed, all_rope,
-                        flat=StaticArray(flat), star=True,
-                        hub=StaticArray(to_internal[np.asarray(hubs)].astype(np.int32)))
-            out.append((blk, ks_all))
-        return out
+        colours = sorted(set(colour_of.values()))
+        by_colour = [[int(k) for k in stars if colour_of[int(k)] == c] for c in colours]
+        spokes = {}
+        for k in stars:
+            ks = np.nonzero(self.star == k)[0]
+            hub = int(np.bincount(np.concatenate([self.i[ks], self.j[ks]])).argmax())   # the shared particle
+            other = np.where(self.i[ks] == hub, self.j[ks], self.i[ks])
+            o = np.argsort(other, kind="stable")
+            spokes[int(k)] = (hub, ks[o], other[o])
+        C, H = len(colours), max(len(g) for g in by_colour)
+        S = max(len(v[1]) for v in spokes.values())
+        hubs = np.full((C, H), self.n, np.int32)
+        J = np.full((C, H, S), self.n, np.int32)
+        src = np.full((C, H, S), self.m, np.int32)
+        rope = np.zeros((C, H, S), bool)
+        for c, group in enumerate(by_colour):
+            for r, k in enumerate(group):
+                hub, ks, other = spokes[k]
+                hubs[c, r] = to_internal[hub]
+                J[c, r, :len(ks)], src[c, r, :len(ks)], rope[c, r, :len(ks)] = to_internal[other], ks, self.is_rope[ks]
+        flat = np.flatnonzero(src < self.m).astype(np.int32)
+        r_real = rope.reshape(-1)[flat]
+        all_rope = bool(r_real.all())
+        mixed = StaticArray(rope) if r_real.any() and not all_rope else None
+        blk = Block(0, len(flat), (C, H, S), None, None, None, StaticArray(J), StaticArray(src), mixed, all_rope,
+                    flat=StaticArray(flat), star=True, hub=StaticArray(hubs))
+        return [(blk, src.reshape(-1)[flat].astype(np.int64))]
 
     def __hash__(self):
         return self._hash

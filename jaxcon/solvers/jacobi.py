@@ -28,8 +28,10 @@ from jaxcon.solvers.common import (
 
 
 def max_degree(topo) -> int:
-    """Largest number of constraints sharing one particle (static, from the topology); at least 1."""
-    return max(int(np.bincount(np.concatenate([topo.i, topo.j]), minlength=topo.n).max()), 1)
+    """Largest number of constraints sharing one free particle (static, from the topology; a fixed particle takes
+    no velocity change, so its constraints do not compete); at least 1."""
+    deg = np.bincount(np.concatenate([topo.i, topo.j]), minlength=topo.n) * ~topo.fixed
+    return max(int(deg.max(initial=0)), 1)
 
 
 @pytree_dataclass

@@ -70,13 +70,18 @@ class RATTLE(Solver):
             f, r2, mu = rows
             xi, xj = L.gather_pair(topo, blk, x)
             d = xj - xi
+            dist, _ = L.safe_length(d)
             res = jnp.sum(d * d, axis=0) - r2
-            s = jnp.sum(d * f.n, axis=0)
-            ok = (f.k > 0) & (s > 0) & (jnp.abs(res) > tol * 2 * r2)
+            # SHAKE moves along the start-of-step direction n0 by res / (2 (w_i + w_j) d . n0). A rod of rest
+            # length 0 (or one that turned far within the step) has d . n0 near 0 and would be flung (1e44 m):
+            # d . n0 is taken as at least |d| / 2, which bounds the move by |d| and leaves other rods unchanged.
+            along = jnp.sum(d * f.n, axis=0)
+            live = (f.k > 0) & (along > 0)
+            rhs = jnp.where(live, res / (2 * jnp.where(live, jnp.maximum(along, 0.5 * dist), 1)), 0)
             if getattr(blk, "star", False):        # a star's rows share the hub: solved together, every row updated
-                upd = L.block_solve(topo, blk, f, jnp.where((f.k > 0) & (s > 0), res / (2 * jnp.where(s > 0, s, 1)), 0))
+                upd = L.block_solve(topo, blk, f, rhs)
             else:
-                upd = jnp.where(ok, res * f.k / (2 * jnp.where(ok, s, 1)), 0)
+                upd = jnp.where(live & (jnp.abs(res) > tol * 2 * r2), rhs * f.k, 0)
             new = clamp_ropes(blk, mu + upd)
             p = f.n * (new - mu)
             pi, pj = f.wi * p, -f.wj * p
