@@ -47,13 +47,13 @@ def per_particle_out(topo: Topology, a):
 def constraints_in(topo: Topology, a):
     """[..., m] in the user's constraint order -> tuple of [..., *block.shape], one per block (a table's or a
     star block's padding is zero)."""
-    if not (topo.compact or topo.has_stars):
+    if not (topo.compact or topo.has_stars or topo.has_sets):
         a = jnp.take(a, topo.perm, axis=-1) if topo.m else a
         lead = a.shape[:-1]
         return tuple(a[..., b.offset: b.offset + b.size].reshape(lead + b.shape) for b in topo.blocks)
     out = []
     for b in topo.blocks:
-        if b.table or b.star:
+        if b.table or b.star or b.generic is not None:
             out.append(jnp.take(a, b.src.array, axis=-1, mode="fill", fill_value=0))
         else:
             seg = jnp.take(a, topo.perm[b.offset: b.offset + b.size], axis=-1)
@@ -70,7 +70,7 @@ def constraints_concat(topo: Topology, blocks, like=None):
         return jnp.zeros(like.shape[: like.ndim - 1 - len(topo.view)] + (0,), like.dtype)
     flat = []
     for x, b in zip(blocks, topo.blocks):
-        if b.table or b.star:
+        if b.table or b.star or b.generic is not None:
             flat.append(jnp.take(x.reshape(x.shape[: x.ndim - len(b.shape)] + (-1,)), b.flat.array, axis=-1))
         else:
             flat.append(x.reshape(x.shape[: x.ndim - len(b.shape)] + (b.size,)))
@@ -180,6 +180,38 @@ class StarRow:
         return self.all_rope or self.rope is not None
 
 
+class SetRow:
+    """One colour of a constraint set's block inside `each_colour`'s scan: traced particle indices [k, W] and
+    real mask [W]; `generic` (the set's index) and `all_rope` (unilateral) as the block's. A set's per-row arrays
+    keep their row axes last ([..., C, W] for the block, [..., W] for a row), like every table's."""
+
+    strided = False
+    table = False
+    star = False
+    rope = None
+
+    def __init__(self, idx, real, block):
+        self.i_idx, self.real = _Mask(idx), _Mask(real)
+        self.generic, self.all_rope = block.generic, block.all_rope
+
+    @property
+    def has_rope(self) -> bool:
+        return self.all_rope
+
+
+def gather_rows(topo: Topology, block, x):
+    """A constraint set's particles' values: x [..., *view] -> [..., k, *block.shape] (or [..., k, W] for a
+    `SetRow`)."""
+    return jnp.take(_flat(topo, x), block.i_idx.array, axis=-1)
+
+
+def add_rows(topo: Topology, block, v, p):
+    """v + the contributions p [..., k, *block.shape] of a constraint set's rows, summed per particle (a
+    scatter-add); padding rows contribute nothing (they are masked here)."""
+    p = p * block.real.array.astype(p.dtype)
+    return _flat(topo, v).at[..., block.i_idx.array].add(p).reshape(v.shape)
+
+
 def each_colour(block, fn, carry, rows):
     """Gauss-Seidel over the colours of `block`: ``carry, out = fn(carry, colour, rows)``, colour by colour.
 
@@ -187,6 +219,16 @@ def each_colour(block, fn, carry, rows):
     so fn runs once on it. A table block (compact layout) runs fn on each of its rows, in order, in a
     `lax.scan`: `colour` is then a `Row` and every leaf of `rows` is that row, [..., width]. `out` (a pytree of
     per-constraint arrays of the colour) is stacked back to [..., *block.shape]."""
+    if getattr(block, "generic", None) is not None:     # a constraint set: its colours [C, W], in order
+        xs = (np.moveaxis(block.i_idx.array, -2, 0), block.real.array,
+              jax.tree.map(lambda a: jnp.moveaxis(a, -2, 0), rows))
+
+        def set_body(carry, x):
+            idx, real, row = x
+            return fn(carry, SetRow(idx, real, block), row)
+
+        carry, out = lax.scan(set_body, carry, xs)
+        return carry, jax.tree.map(lambda a: jnp.moveaxis(a, 0, -2), out)
     if getattr(block, "star", False):          # a star block: its colours [C, H, S], one after another
         rope = None if block.rope is None else block.rope.array
         xs = (block.hub.array, block.j_idx.array, rope, jax.tree.map(lambda a: jnp.moveaxis(a, -3, 0), rows))

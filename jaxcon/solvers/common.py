@@ -8,6 +8,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxcon.core import layout as L
+from jaxcon.core import rows as R
 from jaxcon.core.system import System
 from jaxcon.core.topology import Topology
 from jaxcon.solvers import contact
@@ -28,9 +29,13 @@ class Frame(NamedTuple):
 
 
 def frames(sys: System, x) -> tuple:
-    """Per-block constraint geometry of positions `x` ([dim, *view])."""
+    """Per-block constraint geometry of positions `x` ([dim, *view]): a `Frame` per rod and rope block, a
+    `rows.SetFrame` per constraint set's block."""
     out = []
     for blk, rest in zip(sys.topology.blocks, sys.rest):
+        if blk.generic is not None:
+            out.append(R.set_frame(sys.topology, blk, *sys.set_of(blk), x, sys.w))
+            continue
         xi, xj = L.gather_pair(sys.topology, blk, x)
         wi, wj = L.gather_pair(sys.topology, blk, sys.w)
         wi, wj = wi[0], wj[0]
@@ -52,9 +57,24 @@ def clamp_ropes(blk, lam):
 def apply_impulses(sys: System, v, fr: tuple, lam: tuple):
     """v + M^-1 J^T lam for every block (tension convention: lam > 0 pulls the endpoints together)."""
     for blk, f, l in zip(sys.topology.blocks, fr, lam):
-        p = f.n * l
-        v = L.add_pair(sys.topology, blk, v, f.wi * p, -f.wj * p)
+        v = R.apply(sys.topology, blk, f, v, l)
     return v
+
+
+def gamma(f, h):
+    """A set's rows' compliance term alpha / h^2 (velocity level: the implicit spring of compliance alpha over a
+    step h), or None for rods and ropes."""
+    a = R.compliant(f)
+    return None if a is None else a / (h * h)
+
+
+def row_solve(topo, blk, f, rhs, lam, g):
+    """The multiplier changes of one colour's rows with right-hand side `rhs` (rel + bias): `layout.block_solve`,
+    or for a set's compliant rows (`g` = alpha / h^2, `gamma`) (rhs - g lam) / (J M^-1 J^T + g), the implicit
+    spring (XPBD's update at velocity level: at rest, C = alpha * force)."""
+    if g is None:
+        return L.block_solve(topo, blk, f, rhs)
+    return (rhs - g * lam) * L.safe_reciprocal(f.s + g) * (f.k > 0).astype(rhs.dtype)
 
 
 def curvature_rate(n, dist, u, h, axis=0):
@@ -75,22 +95,36 @@ def curvature_rate(n, dist, u, h, axis=0):
     return h * ut2 * L.safe_reciprocal(jnp.sqrt(dist * dist + h * h * ut2) + dist)
 
 
-def velocity_bias(topo: Topology, fr: tuple, beta, h, v=None) -> tuple:
+def velocity_bias(topo: Topology, fr: tuple, beta, h, v=None, sys=None, x=None) -> tuple:
     """Per-block velocity bias: (beta / h) C for rods and taut ropes, the speculative C / h for slack ropes (the
-    rope may close the gap within this (sub)step but no further). Split impulses pass the velocities `v`
-    [dim, *view] and beta = 0: rods and taut ropes then get the `curvature_rate` of their motion instead of a
-    position correction, so the velocity solve keeps C(x + h v) = C(x) to second order."""
+    rope may close the gap within this (sub)step but no further); a constraint set's unilateral rows as ropes, its
+    compliant rows C / h (`row_solve` softens them). Split impulses pass beta = 0, the velocities `v` [dim,
+    *view], the system and the positions `x`: every row then gets the curvature of its motion (`_curvature`)
+    instead of a position correction, so the velocity solve keeps C(x + h v) = C(x) to second order."""
     out = []
     for blk, f in zip(topo.blocks, fr):
         b = beta / h * f.C
+        if R.compliant(f) is not None:          # a compliant row is a spring: the whole C, softened by gamma
+            b = jnp.where(f.alpha > 0, f.C / h, b)
         if blk.has_rope:
             slack = jnp.where(f.C > 0, b, f.C / h)
             b = slack if blk.all_rope else jnp.where(blk.rope.array, slack, b)
         if v is not None:       # every row, a slack rope's too: its speculative C(x + h v) <= 0 includes it, and
-            vi, vj = L.gather_pair(topo, blk, v)      # a rope just at its length gets the same target either way
-            b = b + curvature_rate(f.n, f.dist, vj - vi, h)
+            b = b + _curvature(sys, blk, f, x, v, h)  # a rope just at its length gets the same target either way
         out.append(b)
     return tuple(out)
+
+
+def _curvature(sys, blk, f, x, v, h):
+    """`curvature_rate` of a block's rows: a rod's in closed form; a set's row's from its function, the second-
+    order remainder (C_lib(x + h v) - C_lib(x)) / h - rel(v)."""
+    topo = sys.topology
+    if blk.generic is None:
+        vi, vj = L.gather_pair(topo, blk, v)
+        return curvature_rate(f.n, f.dist, vj - vi, h)
+    con, ssys = sys.set_of(blk)
+    ahead = R.value_at(topo, blk, con, ssys, x + h * v)
+    return ((ahead - f.C) / h - R.rel(topo, blk, f, v)) * (f.k > 0).astype(ahead.dtype)
 
 
 def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, factor=1.0, gradient: bool = True):
@@ -121,16 +155,24 @@ class _Rows(NamedTuple):
     k: Any
 
 
-def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None):
+def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_alpha=None):
     """One pass of position-level projection over the rod and rope colours, (_, (p, mu)) -> (p, mu): each
     constraint, with d = p_j - p_i, moves its particles along d by dmu = (|d| - rest - alpha mu) / (w_i + w_j +
     alpha) (p_i += w_i n dmu, p_j -= w_j n dmu; mu > 0 pulls), its accumulated mu clamped >= 0 for ropes (a rope
     never pushes). Gauss-Seidel colour by colour (XPBD, split impulses' position pass), or, with
     `jacobi_relaxation`, every constraint from the same p, the changes scaled by it and summed (Jacobi). `rest`:
-    per-block target lengths; `alpha`: compliance / h^2 (0: a rigid projection)."""
+    per-block target lengths; `alpha`: compliance / h^2 (0: a rigid projection).
+
+    A constraint set's rows are evaluated at the current positions (nonlinear Gauss-Seidel) and move by
+    dmu = (C_lib - a mu) / (J M^-1 J^T + a), p += M^-1 J^T dmu, with a = `set_alpha(compliance)` (XPBD: the
+    set's compliance / h^2); `set_alpha` None keeps a set's compliant rows out of the pass (split impulses: a
+    compliant row's stretch is its spring's, not an error to correct)."""
     topo = sys.topology
     w_pairs = []
     for blk in topo.blocks:
+        if blk.generic is not None:
+            w_pairs.append(None)
+            continue
         wi, wj = L.gather_pair(topo, blk, sys.w)
         wi, wj = wi[0], wj[0]
         w_pairs.append((wi, wj, L.safe_reciprocal(wi + wj + alpha)))
@@ -154,19 +196,42 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None):
         q = d * (((new - mu) if blk.has_rope else dmu) * inv)
         return wi * q, -wj * q, new
 
+    def update_set(p, blk, rows):
+        ssys, mu = rows
+        f = R.set_frame(topo, blk, sys.cons[blk.generic], ssys, p, sys.w)
+        a = jnp.zeros_like(f.C) if set_alpha is None else set_alpha(f.alpha)
+        dmu = (f.C - a * mu) * L.safe_reciprocal(f.s + a) * (f.k > 0).astype(f.C.dtype)
+        if set_alpha is None:
+            dmu = dmu * (f.alpha == 0).astype(dmu.dtype)
+        if jacobi_relaxation is not None:
+            dmu = jacobi_relaxation * dmu
+        new = clamp_ropes(blk, mu + dmu)
+        return f.J * (f.w * (new - mu)), new
+
     def colour(p, blk, rows):
         qi, qj, new = update(p, blk, rows)
         return L.add_pair(topo, blk, p, qi, qj), new
+
+    def colour_set(p, blk, rows):
+        q, new = update_set(p, blk, rows)
+        return L.add_rows(topo, blk, p, q), new
 
     def sweep(_, carry):
         p, mu = carry
         mu = list(mu)
         dp = jnp.zeros_like(p)
-        for c, (blk, r, (wi, wj, k)) in enumerate(zip(topo.blocks, rest, w_pairs)):
-            if jacobi_relaxation is None:
-                p, mu[c] = L.each_colour(blk, colour, p, (r, wi, wj, k, mu[c]))
+        for c, (blk, r, wk) in enumerate(zip(topo.blocks, rest, w_pairs)):
+            if blk.generic is not None:
+                rows = (sys.sets[blk.generic], mu[c])
+                if jacobi_relaxation is None:
+                    p, mu[c] = L.each_colour(blk, colour_set, p, rows)
+                else:
+                    q, mu[c] = update_set(p, blk, rows)
+                    dp = L.add_rows(topo, blk, dp, q)
+            elif jacobi_relaxation is None:
+                p, mu[c] = L.each_colour(blk, colour, p, (r, *wk, mu[c]))
             else:
-                qi, qj, mu[c] = update(p, blk, (r, wi, wj, k, mu[c]))
+                qi, qj, mu[c] = update(p, blk, (r, *wk, mu[c]))
                 dp = L.add_pair(topo, blk, dp, qi, qj)
         return (p if jacobi_relaxation is None else p + dp), tuple(mu)
     return sweep
@@ -200,7 +265,8 @@ def contact_begin(sys, x, v, lam_ws, beta, h, split: bool, warm: bool, factor=1.
     v0, v = v, sys.apply_gravity(v, h)
     v_free = v
     fr = frames(sys, x)
-    bias = velocity_bias(topo, fr, jnp.zeros((), x.dtype), h, v) if split else velocity_bias(topo, fr, beta, h)
+    bias = (velocity_bias(topo, fr, jnp.zeros((), x.dtype), h, v, sys, x) if split
+            else velocity_bias(topo, fr, beta, h))
     partners = overflow = None
     if cs.ct.has_grid:          # the grid model's candidate pairs of this step, from the velocities after gravity
         partners, overflow = contact.neighbours(cs, x, v, h)

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import functools
+
+import jax
 from typing import Any
 
 import jax.numpy as jnp
@@ -9,6 +11,7 @@ import numpy as np
 from jax.lax.linalg import tridiagonal_solve
 
 from jaxcon.core import layout as L
+from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
@@ -106,11 +109,13 @@ class Direct(Solver):
 
     def _step(self, sys, x, v, lam, dt):
         topo = sys.topology
-        if topo.has_ropes:
+        if topo.has_ropes or any(info.unilateral for info in topo.sets):
             raise ValueError(
-                "Direct: the model has ropes (unilateral constraints), which Direct does not take; "
-                "use jc.PGS, jc.SoftStep or jc.RATTLE"
+                "Direct: the model has ropes or unilateral constraints, which Direct does not take (an "
+                "inequality needs a complementarity solve); use jc.PGS, jc.SoftStep or jc.RATTLE"
             )
+        if topo.has_sets:
+            return self._step_rows(sys, x, v, lam, dt)
         tri = self._use_tridiagonal(topo)
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
@@ -130,6 +135,95 @@ class Direct(Solver):
             return x + h * move, v, L.constraints_in(topo, lam_u)
 
         return substepped(substep, self.substeps, x, v, lam, dt)
+
+
+    def _step_rows(self, sys, x, v, lam, dt):
+        """The step of a model with constraint sets: every row's Jacobian assembled densely in user order
+        (`_rows_solve`); rods as above, a set's compliant rows with alpha / h^2 on their diagonal (implicit
+        springs) and bias C / h."""
+        topo = sys.topology
+        dtype = x.dtype
+        beta = jnp.asarray(self.beta, dtype)
+        w = L.per_particle_out(topo, sys.w)
+        rest = L.constraints_out(topo, sys.rest)[: topo.m_pairs]
+        eps = _regularisation(self.regularisation, dtype)
+        split = self.stabilization == "split"
+        sets = _user_sets(sys)
+
+        def substep(x, v, _lam, h):
+            v = sys.apply_gravity(v, h)
+            xu, vu = L.particles_out(topo, x), L.particles_out(topo, v)
+            lam_u, dvs = _rows_solve(xu, vu, w, rest, sets, topo, (1 if split else beta), h, eps, split)
+            v = L.particles_in(topo, vu + dvs[0])
+            move = v if not split else v + L.particles_in(topo, dvs[1])
+            return x + h * move, v, L.constraints_in(topo, lam_u)
+
+        return substepped(substep, self.substeps, x, v, lam, dt)
+
+
+def _user_sets(sys):
+    """Per constraint set: (fn, particles [m, k] user indices, params {[m, ...]}, compliance [m]) in user
+    order, from the system's table layout."""
+    out = []
+    blocks = [b for b in sys.topology.blocks if b.generic is not None]
+    for blk, info, con, ssys in zip(blocks, sys.topology.sets, sys.cons, sys.sets):
+        flat = blk.flat.array
+        order = flat[np.argsort(blk.src.array.reshape(-1)[flat], kind="stable")]   # user order within the set
+
+        def user(a):
+            a = a.reshape(a.shape[: a.ndim - 2] + (-1,))[..., order]
+            return jnp.moveaxis(a, -1, 0)
+        out.append((con.fn, info.particles, jax.tree.map(user, ssys.params), user(ssys.compliance)))
+    return out
+
+
+def _rows_solve(xu, vu, w, rest, sets, topo, beta, h, eps, split):
+    """One dense solve over every row (rods and sets) of (J M^-1 J^T + Gamma) lam = J v + bias, Gamma =
+    alpha / h^2 on a set's compliant rows (their bias C / h; the others beta / h C, split: none, and the
+    correction apart). Returns (lam [m] user order, velocity changes as `_dense_solve`)."""
+    n, dim = xu.shape
+    J, C, alpha = _all_rows(xu, rest, sets, topo)
+    J = J.reshape(-1, n * dim)
+    wd = jnp.repeat(w, dim)
+    A = (J * wd) @ J.T
+    diag = jnp.diagonal(A)
+    ok = diag > 0
+    g = alpha / (h * h)
+    A = jnp.where(ok[:, None] & ok[None, :], A, 0) + jnp.diag(jnp.where(ok, eps * diag + g, 1))
+    rel = -(J @ vu.reshape(-1))
+    corr = jnp.where(alpha > 0, C / h, beta / h * C)
+    if split:       # the velocity solve keeps C(x + h v) = C(x) to second order (the motion's curvature)
+        curv = (_all_rows(xu + h * vu, rest, sets, topo, values=True) - C) / h - rel
+        cols = [rel + jnp.where(alpha > 0, corr, curv), jnp.where(alpha > 0, 0, corr)]
+    else:
+        cols = [rel + corr]
+    lams = jnp.linalg.solve(A, jnp.stack([jnp.where(ok, c, 0) for c in cols], -1))
+    changes = tuple((J.T @ lams[:, c]).reshape(n, dim) * w[:, None] for c in range(lams.shape[1]))
+    return lams[:, 0], changes
+
+
+def _all_rows(xu, rest, sets, topo, values=False):
+    """Every row at positions xu [n, dim], user order: (J [m, n, dim] of each row's C_user (a rod's
+    L - |x_j - x_i|), C_lib [m], compliance [m]); with `values`, C_lib alone."""
+    n, dim = xu.shape
+    rows_J, rows_C, rows_a = [], [], []
+    if topo.m_pairs:
+        i, j = topo.i, topo.j
+        dist, nrm = L.safe_norm(xu[j] - xu[i], axis=-1)
+        rows_C.append(dist - rest)
+        if not values:
+            Jp = jnp.zeros((topo.m_pairs, n, dim), xu.dtype).at[np.arange(topo.m_pairs), i].set(nrm)
+            rows_J.append(Jp.at[np.arange(topo.m_pairs), j].set(-nrm))
+            rows_a.append(jnp.zeros(topo.m_pairs, xu.dtype))
+    for fn, parts, params, comp in sets:
+        C, J, _ = R.evaluate(fn, xu[parts], params)
+        rows_C.append(-C)
+        if not values:
+            rows_J.append(jnp.zeros((len(parts), n, dim), xu.dtype).at[np.arange(len(parts))[:, None], parts].add(J))
+            rows_a.append(comp)
+    if values:
+        return jnp.concatenate(rows_C)
+    return jnp.concatenate(rows_J), jnp.concatenate(rows_C), jnp.concatenate(rows_a)
 
 
 @functools.lru_cache(maxsize=64)

@@ -9,6 +9,7 @@ import numpy as np
 from jax import lax
 
 from jaxcon.core import layout as L
+from jaxcon.core import rows as R
 from jaxcon.core.checks import check_bool, check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
@@ -20,7 +21,9 @@ from jaxcon.solvers.common import (
     contact_begin,
     contact_end,
     frames,
+    gamma,
     restitution_phases,
+    row_solve,
     split_position_pass,
     velocity_bias,
     warm_start,
@@ -28,9 +31,10 @@ from jaxcon.solvers.common import (
 
 
 def max_degree(topo) -> int:
-    """Largest number of constraints sharing one free particle (static, from the topology; a fixed particle takes
-    no velocity change, so its constraints do not compete); at least 1."""
-    deg = np.bincount(np.concatenate([topo.i, topo.j]), minlength=topo.n) * ~topo.fixed
+    """Largest number of constraints (of every kind) sharing one free particle (static, from the topology; a
+    fixed particle takes no velocity change, so its constraints do not compete); at least 1."""
+    ends = [topo.i, topo.j] + [info.particles.reshape(-1) for info in topo.sets]
+    deg = np.bincount(np.concatenate(ends), minlength=topo.n) * ~topo.fixed
     return max(int(deg.max(initial=0)), 1)
 
 
@@ -101,23 +105,24 @@ class Jacobi(Solver):
             v = sys.apply_gravity(v, h)
             fr = frames(sys, x)
             split = self.stabilization == "split"
-            bias = (velocity_bias(topo, fr, jnp.zeros((), dtype), h, v) if split
+            bias = (velocity_bias(topo, fr, jnp.zeros((), dtype), h, v, sys, x) if split
                     else velocity_bias(topo, fr, beta, h))
             if self.warm_start:
                 v, lam = warm_start(sys, v, fr, lam_ws)
             else:
                 lam = tuple(jnp.zeros_like(f.C) for f in fr)
 
+            gs = tuple(gamma(f, h) for f in fr)
+
             def iterate(_, carry):
                 v, lam = carry
                 new = []
                 dv = jnp.zeros_like(v)
-                for blk, f, b, l in zip(topo.blocks, fr, bias, lam):
-                    vi, vj = L.gather_pair(topo, blk, v)
-                    rel = jnp.sum((vj - vi) * f.n, axis=0)
-                    nl = clamp_ropes(blk, l + relax * (rel + b) * f.k)
-                    p = f.n * (nl - l)
-                    dv = L.add_pair(topo, blk, dv, f.wi * p, -f.wj * p)
+                for blk, f, b, g, l in zip(topo.blocks, fr, bias, gs, lam):
+                    rel = R.rel(topo, blk, f, v)
+                    step = (rel + b) * f.k if g is None else row_solve(topo, blk, f, rel + b, l, g)
+                    nl = clamp_ropes(blk, l + relax * step)
+                    dv = R.apply(topo, blk, f, dv, nl - l)
                     new.append(nl)
                 return v + dv, tuple(new)
 

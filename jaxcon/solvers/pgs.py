@@ -8,6 +8,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxcon.core import layout as L
+from jaxcon.core import rows as R
 from jaxcon.core.checks import check_bool, check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
@@ -20,7 +21,9 @@ from jaxcon.solvers.common import (
     contact_begin,
     contact_end,
     frames,
+    gamma,
     restitution_phases,
+    row_solve,
     split_position_pass,
     velocity_bias,
     warm_start,
@@ -115,13 +118,14 @@ class PGS(Solver):
         v = sys.apply_gravity(v, h)
         fr = frames(sys, x)
         split = self.stabilization == "split"
-        bias = velocity_bias(topo, fr, jnp.zeros((), dtype), h, v) if split else velocity_bias(topo, fr, beta, h)
+        bias = (velocity_bias(topo, fr, jnp.zeros((), dtype), h, v, sys, x) if split
+                else velocity_bias(topo, fr, beta, h))
         if self.warm_start:
             v, lam = warm_start(sys, v, fr, lam_ws, self._factor(dtype), self.warm_start_gradient)
         else:
             lam = tuple(jnp.zeros_like(f.C) for f in fr)
 
-        block_sweep = self._block_sweep(topo, fr, bias)
+        block_sweep = self._block_sweep(topo, fr, bias, h)
 
         def sweep(_, carry):
             return block_sweep(*carry)
@@ -144,7 +148,7 @@ class PGS(Solver):
         split = self.stabilization == "split"
         v_free, v, fr, bias, obs, pairs, lam, imp = contact_begin(
             sys, x, v, lam_ws, beta, h, split, self.warm_start, self._factor(dtype), self.warm_start_gradient)
-        block_sweep = self._block_sweep(topo, fr, bias)
+        block_sweep = self._block_sweep(topo, fr, bias, h)
 
         def sweeps(obs, pairs):
             def sweep(carry):
@@ -159,20 +163,18 @@ class PGS(Solver):
         return contact_end(sys, x, v, v_free, obs, pairs, imp, h, passes=None, rods_pass=rods_pass), v, (lam, imp)
 
     @staticmethod
-    def _block_sweep(topo, fr, bias):
-        """One Gauss-Seidel pass over the constraint colours: (v, lam) -> (v, lam)."""
+    def _block_sweep(topo, fr, bias, h):
+        """One Gauss-Seidel pass over the constraint colours: (v, lam) -> (v, lam). Every kind's rows through
+        `rows.rel` / `rows.apply` (`common.row_solve`: a set's compliant rows as implicit springs)."""
         def colour(v, blk, rows):
-            f, b, lam = rows
-            vi, vj = L.gather_pair(topo, blk, v)
-            rel = L.dot(blk, vj - vi, f.n)
-            new = clamp_ropes(blk, lam + L.block_solve(topo, blk, f, rel + b))
-            p = f.n * (new - lam)
-            return L.add_pair(topo, blk, v, f.wi * p, -f.wj * p), new
+            f, b, g, lam = rows
+            new = clamp_ropes(blk, lam + row_solve(topo, blk, f, R.rel(topo, blk, f, v) + b, lam, g))
+            return R.apply(topo, blk, f, v, new - lam), new
 
         def sweep(v, lam):
             lam = list(lam)
             for c, (blk, f, b) in enumerate(zip(topo.blocks, fr, bias)):
-                v, lam[c] = L.each_colour(blk, colour, v, (f, b, lam[c]))
+                v, lam[c] = L.each_colour(blk, colour, v, (f, b, gamma(f, h), lam[c]))
             return v, tuple(lam)
         return sweep
 
@@ -181,35 +183,31 @@ class PGS(Solver):
         G lam = -J (M^-1 J^T lam) is J M^-1 J^T in the tension convention (symmetric), and v is the velocity
         before any impulse. `lam0` (the warm start, already applied to v) is the solver's initial guess only."""
         topo = sys.topology
-        if topo.has_ropes:
+        if topo.has_ropes or any(info.unilateral for info in topo.sets):
             raise ValueError("PGS(implicit=True): implicit differentiation needs equality constraints; the model "
-                             "has ropes (inequalities). Use implicit=False for ropes.")
+                             "has ropes or unilateral constraints (inequalities). Use implicit=False for them.")
         v_free = apply_impulses(sys, v, fr, tuple(-l for l in lam0))     # undo the warm start
         zero_v = jnp.zeros_like(v)
+        gs = tuple(gamma(f, h) for f in fr)
 
         def relative(u):
-            out = []
-            for blk, f in zip(topo.blocks, fr):
-                ui, uj = L.gather_pair(topo, blk, u)
-                out.append(jnp.sum((uj - ui) * f.n, axis=0))
-            return tuple(out)
+            return tuple(R.rel(topo, blk, f, u) for blk, f in zip(topo.blocks, fr))
 
-        def matvec(l):
-            return tuple(-r for r in relative(apply_impulses(sys, zero_v, fr, l)))
+        def matvec(l):          # (J M^-1 J^T + gamma) l, gamma for a set's compliant rows
+            return tuple(-r if g is None else g * li - r
+                         for r, g, li in zip(relative(apply_impulses(sys, zero_v, fr, l)), gs, l))
 
         def solve(_, rhs, guess=lax.stop_gradient(lam0)):
             def colour(u, blk, rows):
-                f, r, l = rows
-                ui, uj = L.gather_pair(topo, blk, u)
-                d = L.block_solve(topo, blk, f, jnp.sum((uj - ui) * f.n, axis=0) + r)
-                p = f.n * d
-                return L.add_pair(topo, blk, u, f.wi * p, -f.wj * p), l + d
+                f, r, g, l = rows
+                d = row_solve(topo, blk, f, R.rel(topo, blk, f, u) + r, l, g)
+                return R.apply(topo, blk, f, u, d), l + d
 
             def sweep(_, carry):
                 u, l = carry
                 l = list(l)
-                for c, (blk, f) in enumerate(zip(topo.blocks, fr)):
-                    u, l[c] = L.each_colour(blk, colour, u, (f, rhs[c], l[c]))
+                for c, (blk, f, g) in enumerate(zip(topo.blocks, fr, gs)):
+                    u, l[c] = L.each_colour(blk, colour, u, (f, rhs[c], g, l[c]))
                 return u, tuple(l)
 
             u0 = apply_impulses(sys, zero_v, fr, guess)

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxcon.core import layout as L
+from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
@@ -62,10 +63,27 @@ class RATTLE(Solver):
         rest2 = tuple(r * r for r in sys.rest)
         zero = tuple(jnp.zeros_like(f.C) for f in fr0)
 
+        v, spring0 = _spring_kick(sys, fr0, v, h / 2)
         v = sys.apply_gravity(v, h / 2)
         x = x + h * v
 
+        def shake_set(xv, blk, rows):
+            """SHAKE for a set's rows: C_lib(x) moved to 0 along the start-of-step gradient J0 (the row's
+            mu = C_lib / (J(x) M^-1 J0^T), at least half of sqrt(J M^-1 J^T J0 M^-1 J0^T) as for a rod);
+            compliant rows are springs (`_spring_kick`) and take no part."""
+            x, v = xv
+            f0, ssys, mu = rows
+            f = R.set_frame(topo, blk, sys.cons[blk.generic], ssys, x, sys.w)
+            along = jnp.sum(f.w * jnp.sum(f.J * f0.J, axis=0), axis=0)
+            live = (f0.k > 0) & (f.k > 0) & (along > 0) & (f0.alpha == 0)
+            floor = 0.5 * jnp.sqrt(f.s * f0.s)
+            new = clamp_ropes(blk, mu + jnp.where(live, f.C / jnp.where(live, jnp.maximum(along, floor), 1), 0))
+            q = f0.J * (f0.w * (new - mu))
+            return (L.add_rows(topo, blk, x, q), L.add_rows(topo, blk, v, q / h)), new
+
         def shake_colour(xv, blk, rows):
+            if getattr(blk, "generic", None) is not None:
+                return shake_set(xv, blk, rows)
             x, v = xv
             f, r2, mu = rows
             xi, xj = L.gather_pair(topo, blk, x)
@@ -91,26 +109,30 @@ class RATTLE(Solver):
             x, v, mu = carry
             mu = list(mu)
             for c, (blk, f, r2) in enumerate(zip(topo.blocks, fr0, rest2)):
-                (x, v), mu[c] = L.each_colour(blk, shake_colour, (x, v), (f, r2, mu[c]))
+                extra = sys.sets[blk.generic] if blk.generic is not None else r2
+                (x, v), mu[c] = L.each_colour(blk, shake_colour, (x, v), (f, extra, mu[c]))
             return x, v, tuple(mu)
 
         x, v, mu = lax.fori_loop(0, self.iterations, shake, (x, v, zero), unroll=self.iterations <= _UNROLL)
 
-        v = sys.apply_gravity(v, h / 2)
         fr1 = frames(sys, x)
+        v, spring1 = _spring_kick(sys, fr1, v, h / 2)
+        v = sys.apply_gravity(v, h / 2)
 
         def project_colour(v, blk, rows):
             f, r, lam = rows
-            vi, vj = L.gather_pair(topo, blk, v)
-            rel = jnp.sum((vj - vi) * f.n, axis=0)
+            rel = R.rel(topo, blk, f, v)
+            if getattr(blk, "generic", None) is not None:      # a set's hard rows: J(x) v = 0; compliant rows are springs
+                step = jnp.where(f.alpha == 0, rel * f.k, 0)
+                new = clamp_ropes(blk, lam + step)
+                return R.apply(topo, blk, f, v, new - lam), new
             active = jnp.abs(rel) * h > tol * r
             if blk.has_rope:  # a rope that is slack after the drift does not constrain the velocity
                 taut = f.C > -tol * jnp.maximum(r, tiny)
                 active = active & (taut if blk.all_rope else (taut | ~blk.rope.array))
             step = L.block_solve(topo, blk, f, rel) if getattr(blk, "star", False) else jnp.where(active, rel * f.k, 0)
             new = clamp_ropes(blk, lam + step)
-            p = f.n * (new - lam)
-            return L.add_pair(topo, blk, v, f.wi * p, -f.wj * p), new
+            return R.apply(topo, blk, f, v, new - lam), new
 
         def project(_, carry):
             v, lam = carry
@@ -120,4 +142,21 @@ class RATTLE(Solver):
             return v, tuple(lam)
 
         v, lam2 = lax.fori_loop(0, self.iterations, project, (v, zero), unroll=self.iterations <= _UNROLL)
-        return x, v, tuple(map(operator.add, (m / h for m in mu), lam2))
+        lam = tuple(map(operator.add, (m / h for m in mu), lam2))
+        return x, v, tuple(l + s0 + s1 for l, s0, s1 in zip(lam, spring0, spring1))
+
+
+def _spring_kick(sys, fr, v, dt):
+    """A half kick of the constraint sets' compliant rows, which RATTLE integrates as the springs they are: the
+    force -(C / alpha) dC/dx (potential energy C^2 / (2 alpha)) held for `dt`. Returns (v, per-block impulses:
+    C_lib / alpha dt for compliant rows, 0 elsewhere)."""
+    out = []
+    for blk, f in zip(sys.topology.blocks, fr):
+        if blk.generic is None:
+            out.append(0)
+            continue
+        soft = (f.alpha > 0) & (f.k > 0)
+        imp = jnp.where(soft, f.C / jnp.where(soft, f.alpha, 1), 0) * dt
+        v = R.apply(sys.topology, blk, f, v, imp)
+        out.append(imp)
+    return v, tuple(out)

@@ -9,12 +9,13 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxcon.core import layout as L
+from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact, contact_soft
-from jaxcon.solvers.common import apply_impulses, clamp_ropes, frames
+from jaxcon.solvers.common import apply_impulses, clamp_ropes, frames, gamma, row_solve
 
 
 def soft_coefficients(hertz, damping_ratio, h):
@@ -29,26 +30,30 @@ def soft_coefficients(hertz, damping_ratio, h):
     return omega / a1, a2 * a3, a3
 
 
-def _sweep(topo, v, lam, fr, bias, mass_scale, impulse_scale, inv_h):
-    """One Gauss-Seidel sweep over the rod and rope colours with soft (or, mass_scale 1 and impulse_scale 0,
-    rigid) rows; a slack rope is speculative and rigid. Returns (v, lam)."""
+def _sweep(topo, v, lam, fr, bias, mass_scale, impulse_scale, inv_h, spring=True):
+    """One Gauss-Seidel sweep over the constraint colours with soft (or, mass_scale 1 and impulse_scale 0,
+    rigid) rows; a slack rope (or unilateral row) is speculative and rigid. A constraint set's compliant rows
+    are their own springs instead (`common.row_solve`, bias C / h when `spring`, 0 in the relax sweeps), so a
+    compliance means the same potential energy as in every other solver. Returns (v, lam)."""
     def colour(v, blk, rows):
-        f, lam = rows
-        vi, vj = L.gather_pair(topo, blk, v)
-        rel = jnp.sum((vj - vi) * f.n, axis=0)
+        f, g, lam = rows
+        rel = R.rel(topo, blk, f, v)
         ms, isc, b = mass_scale, impulse_scale, bias(f)
         if blk.has_rope:  # slack rope: speculative, rigid
             slack = f.C < 0 if blk.all_rope else (f.C < 0) & blk.rope.array
             b = jnp.where(slack, f.C * inv_h, b)
             ms = jnp.where(slack, 1, ms)
             isc = jnp.where(slack, 0, isc)
-        new = clamp_ropes(blk, lam + ms * L.block_solve(topo, blk, f, rel + b) - isc * lam)
-        p = f.n * (new - lam)
-        return L.add_pair(topo, blk, v, f.wi * p, -f.wj * p), new
+        step = ms * L.block_solve(topo, blk, f, rel + b) - isc * lam
+        if g is not None:
+            own = row_solve(topo, blk, f, rel + (f.C * inv_h if spring else 0), lam, g)
+            step = jnp.where(f.alpha > 0, own, step)
+        new = clamp_ropes(blk, lam + step)
+        return R.apply(topo, blk, f, v, new - lam), new
 
     lam = list(lam)
     for c, (blk, f) in enumerate(zip(topo.blocks, fr)):
-        v, lam[c] = L.each_colour(blk, colour, v, (f, lam[c]))
+        v, lam[c] = L.each_colour(blk, colour, v, (f, gamma(f, 1 / inv_h), lam[c]))
     return v, tuple(lam)
 
 
@@ -138,7 +143,7 @@ class SoftStep(Solver):
                 fr = frames(sys, x)
                 v, lam = lax.fori_loop(
                     0, self.relax_iterations,
-                    lambda _, c: sweep(*c, fr, lambda f: jnp.zeros_like(f.C), 1.0, 0.0, inv_h), (v, lam))
+                    lambda _, c: sweep(*c, fr, lambda f: jnp.zeros_like(f.C), 1.0, 0.0, inv_h, False), (v, lam))
             return x, v, lam
 
         return substepped(substep, self.substeps, x, v, lam, dt)
@@ -173,7 +178,7 @@ class SoftStep(Solver):
 
             def relax(_, carry):
                 v, lam, imp = carry
-                v, lam = _sweep(topo, v, lam, fr, lambda f: jnp.zeros_like(f.C), 1.0, 0.0, inv_h)
+                v, lam = _sweep(topo, v, lam, fr, lambda f: jnp.zeros_like(f.C), 1.0, 0.0, inv_h, False)
                 v, imp = contact.sweep(cs, w, v, obs, pairs, imp)
                 return v, lam, imp
 
