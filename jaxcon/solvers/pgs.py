@@ -20,6 +20,7 @@ from jaxcon.solvers.common import (
     contact_begin,
     contact_end,
     frames,
+    grid_step,
     position_correction,
     pseudo_velocities,
     restitution_phases,
@@ -128,19 +129,22 @@ class PGS(Solver):
             return x + h * (v + vp), v, lam
         return x + h * v, v, lam
 
-    def _substep_contacts(self, sys, x, v, lam_ws, h):
+    def _substep_contacts(self, sys, x, v, lam_ws, h, found=None):
         """The same step with contacts (jaxcon.solvers.contact): each sweep solves the constraint colours, then
-        the contacts; positions get the time-of-impact correction. Contacts push out overlap with `beta`."""
+        the contacts; positions get the time-of-impact correction. Contacts push out overlap with `beta`. A grid
+        model's step goes through `grid_step`, which calls this with its candidate pairs `found`."""
         if self.implicit:
             raise ValueError("PGS(implicit=True) does not support contacts (an inequality); use implicit=False")
         topo, cs = sys.topology, sys.contact
+        if cs.ct.has_grid and found is None:
+            return grid_step(sys, x, v, h, functools.partial(self._substep_contacts, sys, x, v, lam_ws, h))
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
         factor = self.warm_start_factor
         factor = factor if isinstance(factor, (int, float)) else jnp.asarray(factor, dtype)
         split = self.stabilization == "split"
         v_free, v, fr, bias, obs, pairs, lam, imp = contact_begin(
-            sys, x, v, lam_ws, beta, h, split, self.warm_start, factor, self.warm_start_gradient)
+            sys, x, v, lam_ws, beta, h, split, self.warm_start, factor, self.warm_start_gradient, found)
         block_sweep = self._block_sweep(topo, fr, bias)
 
         def sweeps(obs, pairs):
