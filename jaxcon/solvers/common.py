@@ -153,12 +153,13 @@ def grid_step(sys, x, v, h, solve):
     in one step. The candidates cover every pair that can touch on straight paths at those velocities, with
     a skin of GRID_SKIN (r_i + r_j); so if no particle's displacement in the step differs from its free one,
     h v_free, by more than GRID_SKIN min(r) from a common offset (the middle of their range: a pile that
-    stops as one keeps it), no other pair can have touched, and the step stands. Otherwise a second search covers the displacements the solve gave, and if it finds a pair that was
-    not solved and touches on the way (`contact.unsolved`), the step is solved again from its start with the
-    pairs of both searches (`contact.merge_partners`), up to GRID_ATTEMPTS solves; what the last check still
-    finds is counted. The overflow reported is that of the search that covers the step's paths, so a missed
-    pair is always counted. One traced copy of the solve, in a loop of `lax.cond`s (under `vmap` every
-    branch runs: GRID_ATTEMPTS solves per step)."""
+    stops as one keeps it), no other pair can have touched, and the step stands. Otherwise a second search
+    lists the pairs that touch on the straight lines from the start to the end positions
+    (`contact.path_search`); if one was not solved (`contact.unsolved`), the step is solved again from its
+    start with both lists' pairs (`contact.merge_partners`), up to GRID_ATTEMPTS solves, and what the last
+    check still finds is counted in the overflow, with the touching pairs the second search had no slot for.
+    One traced copy of the solve, in a loop of `lax.cond`s (under `vmap` every branch runs: GRID_ATTEMPTS
+    solves per step)."""
     cs = sys.contact
     v_free = sys.apply_gravity(v, h)
     r_min = lax.stop_gradient(jnp.min(cs.radius_flat))
@@ -172,8 +173,8 @@ def grid_step(sys, x, v, h, solve):
         stays = jnp.max(jnp.sum(dev * dev, 0)) <= (contact.GRID_SKIN * r_min) ** 2
 
         def verify(_):
-            wide = contact.path_search(cs, x, (out[0] - x) / h, h, scan)
-            missed = contact.unsolved(cs, x, out[0], wide[0], partners)
+            wide = contact.path_search(cs, x, out[0], h, scan)
+            missed = contact.unsolved(wide[0], partners)
             last = i == GRID_ATTEMPTS - 1
             both, dropped = contact.merge_partners(partners, wide[0])
             return both, over + dropped, wide[1] + jnp.where(last, missed, 0), (missed > 0) & ~last

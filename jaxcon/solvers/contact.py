@@ -25,7 +25,14 @@ k = 0). A PGS sweep solves them after the obstacles slot by slot, the rows of on
 splitting (`grid_pass`); the position safety pass projects them the same way, and the warm start matches last
 step's impulses by partner (a slot's impulse is carried over only if the same pair is listed again).
 `Impulses.partners` [n, K] and `Impulses.overflow` (the candidates that did not fit) travel with the impulses.
-The time-of-impact correction applies to grid pairs as to listed ones.
+The time-of-impact correction applies to grid pairs as to listed ones. After the solve, `common.grid_step`
+checks that no unlisted pair touched on the paths the solve gave (`path_search`, `unsolved`), solving the
+step again with those pairs if one did.
+
+Start overlaps (a particle inside an obstacle or another particle) are pushed out at no more than
+`PUSH_OUT_SPEED`, along `direction` (the last axis where the centres coincide). Gaps within rounding of 0
+(`_gap`) are classified the same way by every program that computes them, so that forward and reverse mode
+agree. `ContactSystem.from_model` makes every leaf NaN when one holds a value `Model` refuses.
 """
 from __future__ import annotations
 
@@ -112,7 +119,8 @@ class Rows(NamedTuple):
     """Contact rows of one (sub)step: normal n, target velocity `target`, effective mass k, inverse-mass sum
     winv, time of impact `toi` (0 unless an impact happens within the step), gap, and `target_c`: the target
     without restitution (the compression phase; None for solvers that do not split the solve). Grid pair rows
-    also carry their particles i, j [n, K] (internal indices, j = -1 for an empty slot); None otherwise."""
+    also carry their particles i, j [n, K] (internal indices, j = -1 for an empty slot); None otherwise. `near`:
+    touching or within rounding of it (an impact of such a contact is one of a touching contact, `_gap`)."""
 
     n: Array
     target: Array
@@ -123,6 +131,7 @@ class Rows(NamedTuple):
     target_c: Array = None
     i: Array = None
     j: Array = None
+    near: Array = None
 
 
 def direction(d):
@@ -270,13 +279,20 @@ def _spread(vf):
 
 def grid_search(cs: ContactSystem, x, v, h):
     """`neighbours`, and its scan (`_scan`'s scanned entries j [n, M], bucket entries left unscanned [n], and
-    the cell side), from which `_select` can pick again for other velocities of no larger `_spread`."""
+    the cell side), which `path_search` can pick from again."""
     dim = x.shape[0]
     xf = lax.stop_gradient(x.reshape(dim, -1))
     vf = lax.stop_gradient(v.reshape(dim, -1))
-    reach = 2 * (1 + GRID_SKIN) * jnp.max(lax.stop_gradient(cs.radius_flat)) + 2 * h * _spread(vf)
+    r = lax.stop_gradient(cs.radius_flat)
+    reach = 2 * (1 + GRID_SKIN) * jnp.max(r) + 2 * h * _spread(vf)
     scan = _scan(cs.ct, xf, reach)
-    return _select(cs, xf, vf, h, scan), scan
+
+    def close(jc):              # within the candidate distance (1 + GRID_SKIN)(r_i + r_j) + h |v_j - v_i|
+        d, dv = xf[:, jc] - xf[:, :, None], vf[:, jc] - vf[:, :, None]
+        cut = (1 + GRID_SKIN) * (r[:, None] + r[jc]) + h * jnp.sqrt(jnp.sum(dv * dv, 0))
+        return jnp.sqrt(jnp.sum(d * d, 0)) < cut
+
+    return _select(cs, scan, close), scan
 
 
 def _scan(ct: ContactTopology, xf, reach):
@@ -306,21 +322,17 @@ def _scan(ct: ContactTopology, xf, reach):
     return jnp.concatenate(cands, 1), missed, reach
 
 
-def _select(cs: ContactSystem, xf, vf, h, scan):
-    """The first K candidates (`neighbours`) among the scanned entries `scan` (`_scan`) at positions xf and
-    velocities vf [dim, n]: (partners [n, K], overflow)."""
+def _select(cs: ContactSystem, scan, close):
+    """The first K scanned entries (`_scan`) j of each particle i with a higher user index, no rod or rope
+    joining them, and `close(jc)` [n, M] (jc the entries, -1 as 0): (partners [n, K], overflow: the entries
+    kept beyond K plus the bucket entries left unscanned)."""
     ct = cs.ct
     K, (j, missed, _) = ct.grid_k, scan
-    n = xf.shape[1]
-    r = lax.stop_gradient(cs.radius_flat)
+    n = j.shape[0]
     uid = jnp.asarray(ct.grid_uid.array)
     excl = jnp.asarray(ct.grid_exclude.array)
     jc = jnp.maximum(j, 0)
-    d = xf[:, jc] - xf[:, :, None]
-    dist = jnp.sqrt(jnp.sum(d * d, 0))
-    dv = vf[:, jc] - vf[:, :, None]
-    cut = (1 + GRID_SKIN) * (r[:, None] + r[jc]) + h * jnp.sqrt(jnp.sum(dv * dv, 0))
-    keep = (j >= 0) & (uid[jc] > uid[:, None]) & (dist < cut)
+    keep = (j >= 0) & (uid[jc] > uid[:, None]) & close(jc)
     keep = keep & ~jnp.any(jc[:, :, None] == excl[:, None, :], axis=-1)
     rank = jnp.cumsum(keep, axis=1) - 1
     count = jnp.sum(keep, axis=1)
@@ -330,16 +342,26 @@ def _select(cs: ContactSystem, xf, vf, h, scan):
     return out[:, :K], overflow
 
 
-def path_search(cs: ContactSystem, x, u, h, scan):
-    """`neighbours` for velocities u [dim, *view] (a step's mean velocities, (x_end - x) / h), reusing the
-    earlier search's `scan` where its cells are wide enough (`_spread(u)` no larger than the one they were made
-    for), else searching again (`lax.cond`)."""
+def path_search(cs: ContactSystem, x, x_end, h, scan):
+    """The pairs that touch on the way from x to x_end [dim, *view] (each particle on the straight line between
+    them: the nearest the pair comes is below r_i + r_j, less rounding), as `neighbours` lists them
+    (partners [n, K], overflow). The earlier search's `scan` is used again where its cells are wide enough
+    for these displacements, else the particles are scanned again (`lax.cond`)."""
     dim = x.shape[0]
-    xf = lax.stop_gradient(x.reshape(dim, -1))
-    uf = lax.stop_gradient(u.reshape(dim, -1))
-    reach = 2 * (1 + GRID_SKIN) * jnp.max(lax.stop_gradient(cs.radius_flat)) + 2 * h * _spread(uf)
+    xf, xe = (lax.stop_gradient(a.reshape(dim, -1)) for a in (x, x_end))
+    r = lax.stop_gradient(cs.radius_flat)
+    reach = 2 * (1 + GRID_SKIN) * jnp.max(r) + 2 * _spread(xe - xf)
     scan = lax.cond(reach <= scan[2], lambda _: scan, lambda _: _scan(cs.ct, xf, reach), None)
-    return _select(cs, xf, uf, h, scan)
+
+    def close(jc):
+        d0 = xf[:, jc] - xf[:, :, None]
+        e = (xe[:, jc] - xe[:, :, None]) - d0
+        s = jnp.clip(-jnp.sum(d0 * e, 0) * L.safe_reciprocal(jnp.sum(e * e, 0)), 0, 1)
+        closest = jnp.sqrt(jnp.sum((d0 + s * e) ** 2, 0))
+        R = r[:, None] + r[jc]
+        return closest < R - _tolerance(_magnitude(xf[:, jc]) + _magnitude(xf)[:, None] + R)
+
+    return _select(cs, scan, close)
 
 
 def merge_partners(a, b):
@@ -354,23 +376,11 @@ def merge_partners(a, b):
     return out[:, :K], jnp.sum(jnp.maximum(jnp.sum(keep, 1) - K, 0)).astype(jnp.int32)
 
 
-def unsolved(cs: ContactSystem, x, x_end, candidates, solved):
-    """How many pairs among `candidates` [n, K] are not in `solved` [n, K] yet touch on the way from x to
-    x_end [dim, *view] (each particle moving on the straight line between them): int32 scalar. `candidates`
-    must come from a search whose reach covers those paths (`neighbours(cs, x, (x_end - x) / h, h)`)."""
-    dim = x.shape[0]
-    xf, xe = (lax.stop_gradient(q.reshape(dim, -1)) for q in (x, x_end))
-    r = lax.stop_gradient(cs.radius_flat)
-    j = jnp.maximum(candidates, 0)
-    me = jnp.arange(xf.shape[1])[:, None]
-    new = (candidates >= 0) & ~jnp.any(candidates[:, :, None] == solved[:, None, :], -1)
-    d0 = xf[:, j] - xf[:, me]
-    e = (xe[:, j] - xe[:, me]) - d0
-    s = jnp.clip(-jnp.sum(d0 * e, 0) * L.safe_reciprocal(jnp.sum(e * e, 0)), 0, 1)
-    closest = jnp.sqrt(jnp.sum((d0 + s * e) ** 2, 0))      # the nearest the pair comes on those paths
-    R = r[:, None] + r[j]
-    touch = closest < R - _tolerance(_magnitude(xf[:, j]) + _magnitude(xf[:, me]) + R)
-    return jnp.sum(new & touch).astype(jnp.int32)
+def unsolved(touching, solved):
+    """How many pairs of `touching` [n, K] (`path_search`) are not in `solved` [n, K]: int32 scalar (a pair sits
+    in the row of its lower-numbered particle in both)."""
+    new = (touching >= 0) & ~jnp.any(touching[:, :, None] == solved[:, None, :], -1)
+    return jnp.sum(new).astype(jnp.int32)
 
 
 def pair_index(ct: ContactTopology, pairs: Rows):
@@ -389,7 +399,7 @@ ROUNDING = 64
 #: `contactPushMaxVelocity` (b2_contactPushMaxVelocity, 3 m/s). Without it a particle that starts deep inside
 #: an obstacle leaves at beta C / h: 0.2 * 0.8 m at h = 1/240 s is 38 m/s, and the position pass then removes
 #: the overlap, so nothing takes that velocity back (a particle started 0.3 R off a 1 m sphere's centre
-#: reached z = 59 m after 2 s with PGS(10, substeps=4)).
+#: reached z = 58 m after 2 s with PGS(10, substeps=4)).
 PUSH_OUT_SPEED = 3.0
 
 def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h):
@@ -423,16 +433,17 @@ def _tolerance(scale):
 
 
 def _gap(C, tol):
-    """The gap a row uses: C where C > tol (`_tolerance`), else min(C + tol, 0).
+    """The gap a row uses: C + tol (`_tolerance`), so that a contact touches (gap <= 0) only once it overlaps
+    by more than rounding.
 
     The position pass leaves the contacts it corrects at C = 0 up to rounding, so that the next step's C is
-    +-1e-17 (float64). Whether such a contact is separated or touching, whether its Baumgarte term
-    max(0, -beta C / h) acts, and whether it is an impact at toi = C / |vn| (whose derivative, 1 / |vn|,
-    the touching branch does not have) would be decided by the rounding of the program that computes it, and
-    the forward-mode and reverse-mode programs round differently: the drape's jax.grad was 2% off jax.jacfwd.
-    Within the tolerance a contact touches, with no push-out, and it is an impact (at toi ~ tol / |vn|,
-    `_swept`) if it approaches: the rounding decides nothing."""
-    return jnp.where(C > tol, C, jnp.minimum(C + tol, 0))
+    +-1e-17 (float64). Whether such a contact is separated or touching (warm-started, its Baumgarte term
+    active), and whether an approaching one is an impact at toi = C / |vn| (whose derivative, 1 / |vn|, the
+    touching branch does not have) would be decided by the rounding of the program that computes it, and the
+    forward-mode and reverse-mode programs round differently: the drape's jax.grad was 2% off jax.jacfwd.
+    Within the tolerance a contact is separated whatever the sign of its rounding: speculative, or an impact
+    at toi ~ tol / |vn| if it approaches (`_swept`)."""
+    return C + tol
 
 
 def _swept(d, u, R, h, tol):
@@ -449,7 +460,7 @@ def _swept(d, u, R, h, tol):
     diameters per step."""
     dist, n0 = direction(d)
     C = dist - R
-    Ci, Ri = C + tol, R - tol
+    Ci, Ri = _gap(C, tol), R - tol
     uu = jnp.sum(u * u, 0)
     du = jnp.sum(d * u, 0)
     disc = du * du - uu * (Ci * (dist + Ri))
@@ -480,7 +491,7 @@ def _obstacle_geometry(cs: ContactSystem, x, v, h):
         C = jnp.sum(nrm * x, 0) - cs.plane_offset[p] - r
         tol = _tolerance(size + jnp.abs(cs.plane_offset[p]))
         vn = jnp.sum(nrm * v, 0)
-        Ci = C + tol                       # as in `_swept`: the impact is when the gap reaches -tol
+        Ci = _gap(C, tol)                  # as in `_swept`: the impact is when the gap reaches -tol
         impact = (Ci > 0) & (Ci + h * vn < 0)
         out.append((nrm, C, C, impact, impact, jnp.where(impact, Ci / jnp.where(impact, -vn, 1), 0), tol))
     for s in range(ct.n_spheres):
@@ -548,7 +559,7 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None):
         toi = jnp.where(impact, toi, 0)
         gap = _gap(C, tol)
         target, target_c = _targets(gap, C_n, vn0, vn1, impact, toi, cs, beta, h)
-        return Rows(n, target, k, winv, toi, gap, target_c)
+        return Rows(n, target, k, winv, toi, gap, target_c, near=C <= tol)
 
     if obs is not None:
         n = obs[0]
@@ -780,7 +791,7 @@ def impact_times(cs: ContactSystem, obs: Rows, pairs: Rows, imp: Impulses, shape
     toi = jnp.where(push, pairs.toi.reshape(-1), 0)
     flat = tau.reshape(-1)
     flat = flat.at[ia].max(toi).at[ja].max(toi)
-    touching = push & ((pairs.toi == 0) | (pairs.gap <= 0)).reshape(-1)     # not an impact of separated balls
+    touching = push & ((pairs.toi == 0) | pairs.near).reshape(-1)       # not an impact of separated balls
 
     def carry(_, t):
         across = jnp.where(touching, jnp.maximum(t[ia], t[ja]), 0)
