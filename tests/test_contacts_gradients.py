@@ -85,19 +85,22 @@ def test_falling_chain_friction_gradient_in_float32():
 @pytest.mark.parametrize("name", ["falling_chain", "billiards", "drape"])
 def test_contact_leaf_gradients_reverse_equals_forward_and_differences(name):
     """Reverse against forward mode along a random direction of all the leaves together (jvp: one compiled
-    program where jacfwd would be one as well, but ~20 times the work), in both dtypes; then float64 central
-    differences along a random direction per leaf, which both dtypes' gradients must match."""
+    program where jacfwd would be one as well, but ~20 times the work) in float32, and in float64 on the drape
+    (where they were 2% apart; elsewhere float64 central differences, below, check the reverse mode alone, to
+    save the suite a compilation); then float64 central differences along a random direction per leaf, which
+    both dtypes' gradients must match."""
     rng = np.random.default_rng(0)
     grads = {}
     for dtype in (np.float32, np.float64):
         loss, p = _problem(name, dtype, jc.PGS(10))
         g = jax.jit(jax.grad(loss))(p)
-        t = {k: jnp.asarray(rng.normal(size=np.shape(a)), dtype) for k, a in p.items()}
-        fwd = float(jax.jit(lambda p, t: jax.jvp(loss, (p,), (t,))[1])(p, t))
         rev = _flat(g, p)
         assert np.all(np.isfinite(rev)), (dtype, g)
-        dot = float(rev @ _flat(t, p))
-        assert dot == pytest.approx(fwd, rel=1e-4 if dtype == np.float32 else 1e-10), dtype
+        if dtype == np.float32 or name == "drape":
+            t = {k: jnp.asarray(rng.normal(size=np.shape(a)), dtype) for k, a in p.items()}
+            fwd = float(jax.jit(lambda p, t: jax.jvp(loss, (p,), (t,))[1])(p, t))
+            dot = float(rev @ _flat(t, p))
+            assert dot == pytest.approx(fwd, rel=1e-4 if dtype == np.float32 else 1e-10), dtype
         grads[dtype] = g
     f = jax.jit(loss)
     scale = np.abs(_flat(grads[np.float64], p)).max()

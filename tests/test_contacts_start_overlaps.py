@@ -3,7 +3,7 @@ in a defined direction (the last axis, up, where the centres coincide: `contact.
 `contact.PUSH_OUT_SPEED` (Box2D's 3 m/s cap), and never with more kinetic energy than that push-out's.
 
 Before: a particle at a sphere's exact centre fell straight through it (no normal); one 0.3 R off the centre of a
-1 m sphere left at beta C / h (38 m/s with PGS(10, substeps=4), z = 59 m after 2 s), and Penalty's spring flung
+1 m sphere left at beta C / h (38 m/s with PGS(10, substeps=4), z = 58 m after 2 s), and Penalty's spring flung
 it at 100 m/s; two colliding particles at the same point were never separated by any solver.
 
 One 3-D scene per solver, without gravity: particle 0 at the centre of one sphere, particle 1 at 0.3 R below the
