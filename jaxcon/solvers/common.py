@@ -57,38 +57,18 @@ def apply_impulses(sys: System, v, fr: tuple, lam: tuple):
     return v
 
 
-def curvature_rate(n, dist, u, h, axis=0):
-    """The rate at which moving along the constraint's tangent for h opens a distance constraint: for relative
-    velocity u whose part across the unit normal n is u_t, |d + h u_t| = sqrt(d^2 + h^2 |u_t|^2), so the
-    distance grows by (sqrt(d^2 + h^2 |u_t|^2) - d) / h = h |u_t|^2 / (sqrt(d^2 + h^2 |u_t|^2) + d) per unit
-    time (written without cancellation; 0 where d and u_t are both 0). `axis`: the vector axis of n and u.
-
-    This is the discrete form of the velocity constraint's curvature term (J-dot v = |u_t|^2 / d). A velocity
-    solve that asks J v = 0 moves the particles along the tangent, so every step lengthens a rotating rod by
-    about h^2 |u_t|^2 / (2 d) and the next step's solve removes the outward velocity that this rotation leaves,
-    losing (h |u_t|^2 / d)^2 / 2 of kinetic energy per unit mass and step. Asking J v = -curvature_rate moves
-    them along the chord instead. Baumgarte stabilisation gets there indirectly (its steady position error
-    h^2 |u_t|^2 / (2 d beta) supplies that inward velocity); split impulses, whose velocity solve sees no
-    position error, need it explicitly."""
-    ut = u - n * jnp.sum(u * n, axis=axis, keepdims=True)
-    ut2 = jnp.sum(ut * ut, axis=axis)
-    return h * ut2 * L.safe_reciprocal(jnp.sqrt(dist * dist + h * h * ut2) + dist)
-
-
-def velocity_bias(topo: Topology, fr: tuple, beta, h, v=None) -> tuple:
+def velocity_bias(topo: Topology, fr: tuple, beta, h, slop=None) -> tuple:
     """Per-block velocity bias: (beta / h) C for rods and taut ropes, the speculative C / h for slack ropes (the
-    rope may close the gap within this (sub)step but no further). Split impulses pass the velocities `v`
-    [dim, *view] and beta = 0: rods and taut ropes then get the `curvature_rate` of their motion instead of a
-    position correction, so the velocity solve keeps C(x + h v) = C(x) to second order."""
+    rope may close the gap within this (sub)step but no further). Split impulses pass `slop` (`split_slop`), per
+    block the error (m) up to which Baumgarte corrects it; a larger C gets no bias (`split_position_pass`
+    removes it without touching the velocities)."""
     out = []
-    for blk, f in zip(topo.blocks, fr):
-        b = beta / h * f.C
+    for k, (blk, f) in enumerate(zip(topo.blocks, fr)):
+        C = f.C if slop is None else jnp.where(jnp.abs(f.C) <= slop[k], f.C, 0)
+        b = beta / h * C
         if blk.has_rope:
             slack = jnp.where(f.C > 0, b, f.C / h)
             b = slack if blk.all_rope else jnp.where(blk.rope.array, slack, b)
-        if v is not None:       # every row, a slack rope's too: its speculative C(x + h v) <= 0 includes it, and
-            vi, vj = L.gather_pair(topo, blk, v)      # a rope just at its length gets the same target either way
-            b = b + curvature_rate(f.n, f.dist, vj - vi, h)
         out.append(b)
     return tuple(out)
 
@@ -172,21 +152,97 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None):
     return sweep
 
 
-def split_position_pass(sys: System, x, iterations: int, jacobi_relaxation=None):
-    """Split impulses' position pass: positions `x`, after the velocity step, are projected onto the rest lengths
-    by `iterations` rigid `position_sweep`s from mu = 0 (a rope only while stretched). Velocities are not
-    touched, so the correction adds no kinetic energy, and the whole error can go in one step: this is Box2D
-    v2's position solver (nonlinear Gauss-Seidel) and Cline and Pai's post-stabilisation.
+def split_slop(sys: System, fr: tuple, v, h, beta, share) -> tuple:
+    """Per block, split impulses' slop (m): the position error each constraint may keep and have Baumgarte
+    correct through the velocities. Twice the steady error that its rotation leaves with Baumgarte,
+    h^2 |u_t|^2 / (2 d beta) (u_t the relative velocity across it): that error is the rotation's
+    centripetal correction, not an error to remove; and at least `share` times the rest length, at most a tenth
+    of it. Whatever is beyond it is not rotation (a stretched start, sweeps that cannot hold a chain) and is
+    projected away without touching the velocities (`split_position_pass`)."""
+    topo = sys.topology
+    out = []
+    for blk, f, r in zip(topo.blocks, fr, sys.rest):
+        vi, vj = L.gather_pair(topo, blk, v)
+        u = vj - vi
+        ut = u - f.n * jnp.sum(u * f.n, axis=0)
+        steady = h * h * jnp.sum(ut * ut, axis=0) * L.safe_reciprocal(f.dist * jnp.maximum(beta, 1e-3))
+        out.append(jnp.clip(steady, share * r, 0.1 * r))
+    return tuple(out)
 
-    Measured (tests/test_split_impulses.py; float64, dt 1/240): a 20-link chain with a 20:1 end mass whose links
-    start 25% too long is 0.02% stretched after 1 s with PGS(20). The linear pseudo-velocity solve it replaces
-    (J v_p = -(beta / h) C at the start of the step, from v_p = 0, and x += h (v + v_p)) left it 82% stretched,
-    and 66 to 92% when warm started or taking the step's own drift into account: it corrects the error the step
-    started with, not the one the unconverged velocity sweeps make, and a warm-started correction overshoots once
-    it has worked."""
-    mu0 = tuple(jnp.zeros(b.shape, x.dtype) for b in sys.topology.blocks)
-    sweep = position_sweep(sys, sys.rest, jnp.zeros((), x.dtype), jacobi_relaxation)
+
+def split_position_pass(sys: System, x, iterations: int, slop: tuple, jacobi_relaxation=None):
+    """Split impulses' position pass: positions `x` (after the velocity step) projected by `iterations` rigid
+    `position_sweep`s from mu = 0 onto lengths within `slop` (a share of each rest length) of the rest lengths
+    (a rope only while stretched beyond it); velocities untouched, so the correction adds no kinetic energy.
+    Box2D v2's position solver (nonlinear Gauss-Seidel), or Jacobi sweeps with the given relaxation.
+
+    Split impulses are Baumgarte stabilisation within the slop (`velocity_bias` clips C to it) and this
+    projection beyond it (docs/solvers.md, "Split impulses"). Inside the slop the step is exactly Baumgarte's, so
+    a system without position error moves as with Baumgarte: a rotating rod's centripetal correction comes from
+    its steady error h^2 |u_t|^2 / (2 d beta), which the slop must hold (0.5% holds a double pendulum at 240 Hz;
+    0.25% left it 3.8x less accurate). A larger error (a stretched start, a chain the sweeps cannot hold) is
+    removed here without becoming kinetic energy."""
+    topo = sys.topology
+    rest = []
+    for blk, r, s in zip(topo.blocks, sys.rest, slop):
+        xi, xj = L.gather_pair(topo, blk, x)
+        dist = L.safe_length(xj - xi)[0]
+        rest.append(jnp.where(jnp.abs(dist - r) > s, r, dist))
+    mu0 = tuple(jnp.zeros(b.shape, x.dtype) for b in topo.blocks)
+    sweep = position_sweep(sys, tuple(rest), jnp.zeros((), x.dtype), jacobi_relaxation)
     return lax.fori_loop(0, iterations, sweep, (x, mu0))[0]
+
+
+def shake_sweep(sys: System, fr0: tuple, h, tol=0.0, jacobi_relaxation=None):
+    """One SHAKE pass over the rod and rope colours, (_, (x, v, mu)) -> (x, v, mu) (RATTLE's position stage,
+    and split impulses' end of step): each constraint moves along its start-of-step direction n0 (`fr0`) by
+    dmu = (|d|^2 - L^2) / (2 (w_i + w_j) d . n0), x_i += w_i n0 dmu, x_j -= w_j n0 dmu, and the velocities by
+    the same divided by h; a rope's accumulated mu clamped >= 0. Gauss-Seidel colour by colour, or with
+    `jacobi_relaxation` every constraint from the same x, scaled and summed. A constraint whose residual is
+    at or below `tol` (|d^2 - L^2| / (2 L^2)) is not updated. Moving along n0 rather than the current
+    direction is what keeps a rotating rod's kinetic energy: the kick is then orthogonal to its velocity."""
+    topo = sys.topology
+    rest2 = tuple(r * r for r in sys.rest)
+
+    def update(x, blk, f, r2, mu):
+        xi, xj = L.gather_pair(topo, blk, x)
+        d = xj - xi
+        dist, _ = L.safe_length(d)
+        res = jnp.sum(d * d, axis=0) - r2
+        # a rod of rest length 0 (or one that turned far within the step) has d . n0 near 0 and would be flung
+        # (1e44 m): d . n0 is taken as at least |d| / 2, which bounds the move by |d| and leaves others unchanged
+        along = jnp.sum(d * f.n, axis=0)
+        live = (f.k > 0) & (along > 0)
+        rhs = jnp.where(live, res / (2 * jnp.where(live, jnp.maximum(along, 0.5 * dist), 1)), 0)
+        if getattr(blk, "star", False):        # a star's rows share the hub: solved together, every row updated
+            upd = L.block_solve(topo, blk, f, rhs)
+        else:
+            upd = jnp.where(live & (jnp.abs(res) > tol * 2 * r2), rhs * f.k, 0)
+        if jacobi_relaxation is not None:
+            upd = jacobi_relaxation * upd
+        new = clamp_ropes(blk, mu + upd)
+        p = f.n * (new - mu)
+        return f.wi * p, -f.wj * p, new
+
+    def colour(xv, blk, rows):
+        x, v = xv
+        pi, pj, new = update(x, blk, *rows)
+        return (L.add_pair(topo, blk, x, pi, pj), L.add_pair(topo, blk, v, pi / h, pj / h)), new
+
+    def sweep(_, carry):
+        x, v, mu = carry
+        mu = list(mu)
+        dx = jnp.zeros_like(x)
+        for c, (blk, f, r2) in enumerate(zip(topo.blocks, fr0, rest2)):
+            if jacobi_relaxation is None:
+                (x, v), mu[c] = L.each_colour(blk, colour, (x, v), (f, r2, mu[c]))
+            else:
+                pi, pj, mu[c] = update(x, blk, f, r2, mu[c])
+                dx = L.add_pair(topo, blk, dx, pi, pj)
+        if jacobi_relaxation is None:
+            return x, v, tuple(mu)
+        return x + dx, v + dx / h, tuple(mu)
+    return sweep
 
 
 # ---- the start and end of a velocity-level (sub)step with contacts (PGS, Jacobi) ------------------------------
@@ -241,19 +297,20 @@ def grid_step(sys, x, v, h, solve):
     return lax.fori_loop(0, GRID_ATTEMPTS, attempt, found + (out, jnp.ones((), bool)))[2]
 
 
-def contact_begin(sys, x, v, lam_ws, beta, h, split: bool, warm: bool, factor=1.0, gradient: bool = True,
+def contact_begin(sys, x, v, lam_ws, beta, h, split, warm: bool, factor=1.0, gradient: bool = True,
                   found=None):
-    """Gravity, the rods' frames and biases (no Baumgarte bias when `split`), the contact rows, and the warm
-    start of rods and contacts (scaled by `factor`; no gradient through it unless `gradient`). A grid model
+    """Gravity, the rods' frames and biases (`split`: split impulses' slop share, or None), the contact rows, and
+    the warm start of rods and contacts (scaled by `factor`; no gradient through it unless `gradient`). A grid model
     passes its candidate pairs `found` = (partners, overflow) (`grid_step`).
-    Returns (v_free, v, fr, bias, obs, pairs, lam, imp): v_free is the velocity after gravity, before any
-    impulse (what the time-of-impact correction compares with)."""
+    Returns (v_free, v, fr, bias, obs, pairs, lam, imp, slop): v_free is the velocity after gravity, before any
+    impulse (what the time-of-impact correction compares with); slop: split impulses' (`split_slop`) or None."""
     topo, cs = sys.topology, sys.contact
     lam_ws, imp_ws = lam_ws
     v0, v = v, sys.apply_gravity(v, h)
     v_free = v
     fr = frames(sys, x)
-    bias = velocity_bias(topo, fr, jnp.zeros((), x.dtype), h, v) if split else velocity_bias(topo, fr, beta, h)
+    slop = None if split is None else split_slop(sys, fr, v, h, beta, split)
+    bias = velocity_bias(topo, fr, beta, h, slop)
     partners, overflow = (None, None) if found is None else found
     obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h, partners)
     if not warm:
@@ -265,7 +322,7 @@ def contact_begin(sys, x, v, lam_ws, beta, h, split: bool, warm: bool, factor=1.
         v, imp = contact.warm_start(cs, sys.w, v, obs, pairs, imp_ws, factor)
     if partners is not None:
         imp = imp._replace(partners=partners, overflow=overflow)
-    return v_free, v, fr, bias, obs, pairs, lam, imp
+    return v_free, v, fr, bias, obs, pairs, lam, imp, slop
 
 
 def restitution_phases(sys, v_free, obs, pairs, iterations: int, carry, body):

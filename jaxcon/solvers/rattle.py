@@ -11,7 +11,7 @@ from jaxcon.core import layout as L
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
-from jaxcon.solvers.common import clamp_ropes, frames
+from jaxcon.solvers.common import clamp_ropes, frames, shake_sweep
 
 # Sweep loops of at most this many iterations are unrolled (lets XLA fuse the small per-sweep ops; a few
 # times faster on small systems, same result).
@@ -59,40 +59,12 @@ class RATTLE(Solver):
         tol = jnp.asarray(self.tolerance, dtype)
         tiny = jnp.finfo(dtype).tiny
         fr0 = frames(sys, x)
-        rest2 = tuple(r * r for r in sys.rest)
         zero = tuple(jnp.zeros_like(f.C) for f in fr0)
 
         v = sys.apply_gravity(v, h / 2)
         x = x + h * v
 
-        def shake_colour(xv, blk, rows):
-            x, v = xv
-            f, r2, mu = rows
-            xi, xj = L.gather_pair(topo, blk, x)
-            d = xj - xi
-            dist, _ = L.safe_length(d)
-            res = jnp.sum(d * d, axis=0) - r2
-            # SHAKE moves along the start-of-step direction n0 by res / (2 (w_i + w_j) d . n0). A rod of rest
-            # length 0 (or one that turned far within the step) has d . n0 near 0 and would be flung (1e44 m):
-            # d . n0 is taken as at least |d| / 2, which bounds the move by |d| and leaves other rods unchanged.
-            along = jnp.sum(d * f.n, axis=0)
-            live = (f.k > 0) & (along > 0)
-            rhs = jnp.where(live, res / (2 * jnp.where(live, jnp.maximum(along, 0.5 * dist), 1)), 0)
-            if getattr(blk, "star", False):        # a star's rows share the hub: solved together, every row updated
-                upd = L.block_solve(topo, blk, f, rhs)
-            else:
-                upd = jnp.where(live & (jnp.abs(res) > tol * 2 * r2), rhs * f.k, 0)
-            new = clamp_ropes(blk, mu + upd)
-            p = f.n * (new - mu)
-            pi, pj = f.wi * p, -f.wj * p
-            return (L.add_pair(topo, blk, x, pi, pj), L.add_pair(topo, blk, v, pi / h, pj / h)), new
-
-        def shake(_, carry):
-            x, v, mu = carry
-            mu = list(mu)
-            for c, (blk, f, r2) in enumerate(zip(topo.blocks, fr0, rest2)):
-                (x, v), mu[c] = L.each_colour(blk, shake_colour, (x, v), (f, r2, mu[c]))
-            return x, v, tuple(mu)
+        shake = shake_sweep(sys, fr0, h, tol)
 
         x, v, mu = lax.fori_loop(0, self.iterations, shake, (x, v, zero), unroll=self.iterations <= _UNROLL)
 
