@@ -77,54 +77,23 @@ def row_solve(topo, blk, f, rhs, lam, g):
     return (rhs - g * lam) * L.safe_reciprocal(f.s + g) * (f.k > 0).astype(rhs.dtype)
 
 
-def curvature_rate(n, dist, u, h, axis=0):
-    """The rate at which moving along the constraint's tangent for h opens a distance constraint: for relative
-    velocity u whose part across the unit normal n is u_t, |d + h u_t| = sqrt(d^2 + h^2 |u_t|^2), so the
-    distance grows by (sqrt(d^2 + h^2 |u_t|^2) - d) / h = h |u_t|^2 / (sqrt(d^2 + h^2 |u_t|^2) + d) per unit
-    time (written without cancellation; 0 where d and u_t are both 0). `axis`: the vector axis of n and u.
-
-    This is the discrete form of the velocity constraint's curvature term (J-dot v = |u_t|^2 / d). A velocity
-    solve that asks J v = 0 moves the particles along the tangent, so every step lengthens a rotating rod by
-    about h^2 |u_t|^2 / (2 d) and the next step's solve removes the outward velocity that this rotation leaves,
-    losing (h |u_t|^2 / d)^2 / 2 of kinetic energy per unit mass and step. Asking J v = -curvature_rate moves
-    them along the chord instead. Baumgarte stabilisation gets there indirectly (its steady position error
-    h^2 |u_t|^2 / (2 d beta) supplies that inward velocity); split impulses, whose velocity solve sees no
-    position error, need it explicitly."""
-    ut = u - n * jnp.sum(u * n, axis=axis, keepdims=True)
-    ut2 = jnp.sum(ut * ut, axis=axis)
-    return h * ut2 * L.safe_reciprocal(jnp.sqrt(dist * dist + h * h * ut2) + dist)
-
-
-def velocity_bias(topo: Topology, fr: tuple, beta, h, v=None, sys=None, x=None) -> tuple:
+def velocity_bias(topo: Topology, fr: tuple, beta, h, slop=None) -> tuple:
     """Per-block velocity bias: (beta / h) C for rods and taut ropes, the speculative C / h for slack ropes (the
     rope may close the gap within this (sub)step but no further); a constraint set's unilateral rows as ropes, its
-    compliant rows C / h (`row_solve` softens them). Split impulses pass beta = 0, the velocities `v` [dim,
-    *view], the system and the positions `x`: every row then gets the curvature of its motion (`_curvature`)
-    instead of a position correction, so the velocity solve keeps C(x + h v) = C(x) to second order."""
+    compliant rows C / h (`row_solve` softens them). Split impulses pass `slop` (`split_slop`), per block the
+    error up to which Baumgarte corrects it; a larger C gets no bias (`split_position_pass` removes it without
+    touching the velocities)."""
     out = []
-    for blk, f in zip(topo.blocks, fr):
-        b = beta / h * f.C
+    for k, (blk, f) in enumerate(zip(topo.blocks, fr)):
+        C = f.C if slop is None else jnp.where(jnp.abs(f.C) <= slop[k], f.C, 0)
+        b = beta / h * C
         if R.compliant(f) is not None:          # a compliant row is a spring: the whole C, softened by gamma
             b = jnp.where(f.alpha > 0, f.C / h, b)
         if blk.has_rope:
             slack = jnp.where(f.C > 0, b, f.C / h)
             b = slack if blk.all_rope else jnp.where(blk.rope.array, slack, b)
-        if v is not None:       # every row, a slack rope's too: its speculative C(x + h v) <= 0 includes it, and
-            b = b + _curvature(sys, blk, f, x, v, h)  # a rope just at its length gets the same target either way
         out.append(b)
     return tuple(out)
-
-
-def _curvature(sys, blk, f, x, v, h):
-    """`curvature_rate` of a block's rows: a rod's in closed form; a set's row's from its function, the second-
-    order remainder (C_lib(x + h v) - C_lib(x)) / h - rel(v)."""
-    topo = sys.topology
-    if blk.generic is None:
-        vi, vj = L.gather_pair(topo, blk, v)
-        return curvature_rate(f.n, f.dist, vj - vi, h)
-    con, ssys = sys.set_of(blk)
-    ahead = R.value_at(topo, blk, con, ssys, x + h * v)
-    return ((ahead - f.C) / h - R.rel(topo, blk, f, v)) * (f.k > 0).astype(ahead.dtype)
 
 
 def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, factor=1.0, gradient: bool = True):
@@ -155,7 +124,7 @@ class _Rows(NamedTuple):
     k: Any
 
 
-def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_alpha=None):
+def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_alpha=None, sets: bool = True):
     """One pass of position-level projection over the rod and rope colours, (_, (p, mu)) -> (p, mu): each
     constraint, with d = p_j - p_i, moves its particles along d by dmu = (|d| - rest - alpha mu) / (w_i + w_j +
     alpha) (p_i += w_i n dmu, p_j -= w_j n dmu; mu > 0 pulls), its accumulated mu clamped >= 0 for ropes (a rope
@@ -166,7 +135,8 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_
     A constraint set's rows are evaluated at the current positions (nonlinear Gauss-Seidel) and move by
     dmu = (C_lib - a mu) / (J M^-1 J^T + a), p += M^-1 J^T dmu, with a = `set_alpha(compliance)` (XPBD: the
     set's compliance / h^2); `set_alpha` None keeps a set's compliant rows out of the pass (split impulses: a
-    compliant row's stretch is its spring's, not an error to correct)."""
+    compliant row's stretch is its spring's, not an error to correct). `sets=False` leaves the sets' rows out
+    (split impulses: Baumgarte corrects them through the velocities)."""
     topo = sys.topology
     w_pairs = []
     for blk in topo.blocks:
@@ -222,6 +192,8 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_
         dp = jnp.zeros_like(p)
         for c, (blk, r, wk) in enumerate(zip(topo.blocks, rest, w_pairs)):
             if blk.generic is not None:
+                if not sets:
+                    continue
                 rows = (sys.sets[blk.generic], mu[c])
                 if jacobi_relaxation is None:
                     p, mu[c] = L.each_colour(blk, colour_set, p, rows)
@@ -237,39 +209,180 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_
     return sweep
 
 
-def split_position_pass(sys: System, x, iterations: int, jacobi_relaxation=None):
-    """Split impulses' position pass: positions `x`, after the velocity step, are projected onto the rest lengths
-    by `iterations` rigid `position_sweep`s from mu = 0 (a rope only while stretched). Velocities are not
-    touched, so the correction adds no kinetic energy, and the whole error can go in one step: this is Box2D
-    v2's position solver (nonlinear Gauss-Seidel) and Cline and Pai's post-stabilisation.
+def split_slop(sys: System, fr: tuple, v, h, beta, share) -> tuple:
+    """Per block, split impulses' slop (m): the position error each constraint may keep and have Baumgarte
+    correct through the velocities. Twice the steady error that its rotation leaves with Baumgarte,
+    h^2 |u_t|^2 / (2 d beta) (u_t the relative velocity across it): that error is the rotation's
+    centripetal correction, not an error to remove; and at least `share` times the rest length, at most a tenth
+    of it. Whatever is beyond it is not rotation (a stretched start, sweeps that cannot hold a chain) and is
+    projected away without touching the velocities (`split_position_pass`)."""
+    topo = sys.topology
+    out = []
+    for blk, f, r in zip(topo.blocks, fr, sys.rest):
+        if blk.generic is not None:     # a constraint set has no length scale: Baumgarte corrects all of it
+            out.append(jnp.full_like(f.C, jnp.inf))
+            continue
+        vi, vj = L.gather_pair(topo, blk, v)
+        u = vj - vi
+        ut = u - f.n * jnp.sum(u * f.n, axis=0)
+        steady = h * h * jnp.sum(ut * ut, axis=0) * L.safe_reciprocal(f.dist * jnp.maximum(beta, 1e-3))
+        out.append(jnp.clip(steady, share * r, 0.1 * r))
+    return tuple(out)
 
-    Measured (tests/test_split_impulses.py; float64, dt 1/240): a 20-link chain with a 20:1 end mass whose links
-    start 25% too long is 0.02% stretched after 1 s with PGS(20). The linear pseudo-velocity solve it replaces
-    (J v_p = -(beta / h) C at the start of the step, from v_p = 0, and x += h (v + v_p)) left it 82% stretched,
-    and 66 to 92% when warm started or taking the step's own drift into account: it corrects the error the step
-    started with, not the one the unconverged velocity sweeps make, and a warm-started correction overshoots once
-    it has worked."""
-    mu0 = tuple(jnp.zeros(b.shape, x.dtype) for b in sys.topology.blocks)
-    sweep = position_sweep(sys, sys.rest, jnp.zeros((), x.dtype), jacobi_relaxation)
+
+def split_position_pass(sys: System, x, iterations: int, slop: tuple, jacobi_relaxation=None):
+    """Split impulses' position pass: positions `x` (after the velocity step) projected by `iterations` rigid
+    `position_sweep`s from mu = 0 onto lengths within `slop` (a share of each rest length) of the rest lengths
+    (a rope only while stretched beyond it); velocities untouched, so the correction adds no kinetic energy.
+    Box2D v2's position solver (nonlinear Gauss-Seidel), or Jacobi sweeps with the given relaxation.
+
+    Split impulses are Baumgarte stabilisation within the slop (`velocity_bias` clips C to it) and this
+    projection beyond it (docs/solvers.md, "Split impulses"). Inside the slop the step is exactly Baumgarte's, so
+    a system without position error moves as with Baumgarte: a rotating rod's centripetal correction comes from
+    its steady error h^2 |u_t|^2 / (2 d beta), which the slop must hold (0.5% holds a double pendulum at 240 Hz;
+    0.25% left it 3.8x less accurate). A larger error (a stretched start, a chain the sweeps cannot hold) is
+    removed here without becoming kinetic energy."""
+    topo = sys.topology
+    rest = []
+    for blk, r, s in zip(topo.blocks, sys.rest, slop):
+        if blk.generic is not None:     # not projected (its slop is unbounded): `position_sweep(sets=False)`
+            rest.append(r)
+            continue
+        xi, xj = L.gather_pair(topo, blk, x)
+        dist = L.safe_length(xj - xi)[0]
+        rest.append(jnp.where(jnp.abs(dist - r) > s, r, dist))
+    mu0 = tuple(jnp.zeros(b.shape, x.dtype) for b in topo.blocks)
+    sweep = position_sweep(sys, tuple(rest), jnp.zeros((), x.dtype), jacobi_relaxation, sets=False)
     return lax.fori_loop(0, iterations, sweep, (x, mu0))[0]
 
 
+def shake_sweep(sys: System, fr0: tuple, h, tol=0.0):
+    """One SHAKE pass over the constraint colours, (_, (x, v, mu)) -> (x, v, mu) (RATTLE's position stage):
+    each constraint moves along its start-of-step direction n0 (`fr0`) by dmu = (|d|^2 - L^2) / (2 (w_i + w_j)
+    d . n0), x_i += w_i n0 dmu, x_j -= w_j n0 dmu, and the velocities by the same divided by h; a rope's
+    accumulated mu clamped >= 0; Gauss-Seidel colour by colour. A constraint whose residual is at or below `tol`
+    (|d^2 - L^2| / (2 L^2)) is not updated. Moving along n0 rather than the current direction is what keeps a
+    rotating rod's kinetic energy: the kick is then orthogonal to its velocity. A constraint set's rows move
+    C_lib(x) to 0 along their start-of-step gradient J0 (`shake_set`)."""
+    topo = sys.topology
+    rest2 = tuple(r * r for r in sys.rest)
+
+    def update(x, blk, f, r2, mu):
+        xi, xj = L.gather_pair(topo, blk, x)
+        d = xj - xi
+        dist, _ = L.safe_length(d)
+        res = jnp.sum(d * d, axis=0) - r2
+        # a rod of rest length 0 (or one that turned far within the step) has d . n0 near 0 and would be flung
+        # (1e44 m): d . n0 is taken as at least |d| / 2, which bounds the move by |d| and leaves others unchanged
+        along = jnp.sum(d * f.n, axis=0)
+        live = (f.k > 0) & (along > 0)
+        rhs = jnp.where(live, res / (2 * jnp.where(live, jnp.maximum(along, 0.5 * dist), 1)), 0)
+        if getattr(blk, "star", False):        # a star's rows share the hub: solved together, every row updated
+            upd = L.block_solve(topo, blk, f, rhs)
+        else:
+            upd = jnp.where(live & (jnp.abs(res) > tol * 2 * r2), rhs * f.k, 0)
+        new = clamp_ropes(blk, mu + upd)
+        p = f.n * (new - mu)
+        return f.wi * p, -f.wj * p, new
+
+    def colour(xv, blk, rows):
+        x, v = xv
+        pi, pj, new = update(x, blk, *rows)
+        return (L.add_pair(topo, blk, x, pi, pj), L.add_pair(topo, blk, v, pi / h, pj / h)), new
+
+    def shake_set(xv, blk, rows):
+        """C_lib(x) moved to 0 along the start-of-step gradient J0 (the row's mu = C_lib / (J(x) M^-1 J0^T), at
+        least half of sqrt(J M^-1 J^T J0 M^-1 J0^T) as for a rod); compliant rows are springs (RATTLE's
+        `_spring_kick`) and take no part."""
+        x, v = xv
+        f0, ssys, mu = rows
+        f = R.set_frame(topo, blk, sys.cons[blk.generic], ssys, x, sys.w)
+        along = jnp.sum(f.w * jnp.sum(f.J * f0.J, axis=0), axis=0)
+        live = (f0.k > 0) & (f.k > 0) & (along > 0) & (f0.alpha == 0)
+        floor = 0.5 * jnp.sqrt(f.s * f0.s)
+        new = clamp_ropes(blk, mu + jnp.where(live, f.C / jnp.where(live, jnp.maximum(along, floor), 1), 0))
+        q = f0.J * (f0.w * (new - mu))
+        return (L.add_rows(topo, blk, x, q), L.add_rows(topo, blk, v, q / h)), new
+
+    def sweep(_, carry):
+        x, v, mu = carry
+        mu = list(mu)
+        for c, (blk, f, r2) in enumerate(zip(topo.blocks, fr0, rest2)):
+            if blk.generic is not None:
+                (x, v), mu[c] = L.each_colour(blk, shake_set, (x, v), (f, sys.sets[blk.generic], mu[c]))
+            else:
+                (x, v), mu[c] = L.each_colour(blk, colour, (x, v), (f, r2, mu[c]))
+        return x, v, tuple(mu)
+    return sweep
+
+
 # ---- the start and end of a velocity-level (sub)step with contacts (PGS, Jacobi) ------------------------------
-def contact_begin(sys, x, v, lam_ws, beta, h, split: bool, warm: bool, factor=1.0, gradient: bool = True):
-    """Gravity, the rods' frames and biases (no Baumgarte bias when `split`), the contact rows, and the warm
-    start of rods and contacts (scaled by `factor`; no gradient through it unless `gradient`).
-    Returns (v_free, v, fr, bias, obs, pairs, lam, imp): v_free is the velocity after gravity, before any
-    impulse (what the time-of-impact correction compares with)."""
+#: Solves a grid model's step may take (`grid_step`): the first, and one again with the pairs it missed.
+GRID_ATTEMPTS = 2
+
+
+def grid_step(sys, x, v, h, solve):
+    """A (sub)step of a model with a neighbour grid, `solve(found) -> (x, v, (lam, imp))` being the solver's
+    step with the candidate pairs `found` = (partners, overflow) (`contact.neighbours`).
+
+    The search takes the velocities after gravity, but an impact within the step can send a particle into one
+    that was no candidate: three discs in a row, B hitting A at 30 m/s with A 5 cm from C, moved A through C
+    in one step. The candidates cover every pair that can touch on straight paths at those velocities, with
+    a skin of GRID_SKIN (r_i + r_j); so if no particle's displacement in the step differs from its free one,
+    h v_free, by more than GRID_SKIN min(r) from a common offset (the middle of their range: a pile that
+    stops as one keeps it), no other pair can have touched, and the step stands. Otherwise a second search
+    lists the pairs that touch on the straight lines from the start to the end positions
+    (`contact.path_search`); if one was not solved (`contact.unsolved`), the step is solved again from its
+    start with both lists' pairs (`contact.merge_partners`), up to GRID_ATTEMPTS solves, and what the last
+    check still finds is counted in the overflow, with the touching pairs the second search had no slot for.
+    One traced copy of the solve, in a loop of `lax.cond`s (under `vmap` every branch runs: GRID_ATTEMPTS
+    solves per step)."""
+    cs = sys.contact
+    v_free = sys.apply_gravity(v, h)
+    r_min = lax.stop_gradient(jnp.min(cs.radius_flat))
+    found, scan = contact.grid_search(cs, x, v_free, h)
+
+    def run(i, carry):
+        partners, over, _, _ = carry
+        out = solve((partners, over))
+        dev = lax.stop_gradient(out[0] - x - h * v_free).reshape(x.shape[0], -1)
+        dev = dev - (jnp.max(dev, 1, keepdims=True) + jnp.min(dev, 1, keepdims=True)) / 2
+        stays = jnp.max(jnp.sum(dev * dev, 0)) <= (contact.GRID_SKIN * r_min) ** 2
+
+        def verify(_):
+            wide = contact.path_search(cs, x, out[0], h, scan)
+            missed = contact.unsolved(wide[0], partners)
+            last = i == GRID_ATTEMPTS - 1
+            both, dropped = contact.merge_partners(partners, wide[0])
+            return both, over + dropped, wide[1] + jnp.where(last, missed, 0), (missed > 0) & ~last
+
+        partners, over, count, again = lax.cond(stays, lambda _: (partners, over, over, jnp.zeros((), bool)),
+                                                verify, None)
+        lam, imp = out[2]
+        return partners, over, out[:2] + ((lam, imp._replace(overflow=count)),), again
+
+    def attempt(i, carry):
+        return lax.cond(carry[3], lambda c: run(i, c), lambda c: c, carry)
+
+    out = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(solve, found))
+    return lax.fori_loop(0, GRID_ATTEMPTS, attempt, found + (out, jnp.ones((), bool)))[2]
+
+
+def contact_begin(sys, x, v, lam_ws, beta, h, split, warm: bool, factor=1.0, gradient: bool = True,
+                  found=None):
+    """Gravity, the rods' frames and biases (`split`: split impulses' slop share, or None), the contact rows, and
+    the warm start of rods and contacts (scaled by `factor`; no gradient through it unless `gradient`). A grid model
+    passes its candidate pairs `found` = (partners, overflow) (`grid_step`).
+    Returns (v_free, v, fr, bias, obs, pairs, lam, imp, slop): v_free is the velocity after gravity, before any
+    impulse (what the time-of-impact correction compares with); slop: split impulses' (`split_slop`) or None."""
     topo, cs = sys.topology, sys.contact
     lam_ws, imp_ws = lam_ws
     v0, v = v, sys.apply_gravity(v, h)
     v_free = v
     fr = frames(sys, x)
-    bias = (velocity_bias(topo, fr, jnp.zeros((), x.dtype), h, v, sys, x) if split
-            else velocity_bias(topo, fr, beta, h))
-    partners = overflow = None
-    if cs.ct.has_grid:          # the grid model's candidate pairs of this step, from the velocities after gravity
-        partners, overflow = contact.neighbours(cs, x, v, h)
+    slop = None if split is None else split_slop(sys, fr, v, h, beta, split)
+    bias = velocity_bias(topo, fr, beta, h, slop)
+    partners, overflow = (None, None) if found is None else found
     obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h, partners)
     if not warm:
         lam, imp = tuple(jnp.zeros_like(f.C) for f in fr), contact.zero_impulses(topo, cs.ct, x.dtype)
@@ -280,7 +393,7 @@ def contact_begin(sys, x, v, lam_ws, beta, h, split: bool, warm: bool, factor=1.
         v, imp = contact.warm_start(cs, sys.w, v, obs, pairs, imp_ws, factor)
     if partners is not None:
         imp = imp._replace(partners=partners, overflow=overflow)
-    return v_free, v, fr, bias, obs, pairs, lam, imp
+    return v_free, v, fr, bias, obs, pairs, lam, imp, slop
 
 
 def restitution_phases(sys, v_free, obs, pairs, iterations: int, carry, body):

@@ -16,7 +16,7 @@ from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
-from jaxcon.solvers.common import check_stabilization, curvature_rate
+from jaxcon.solvers.common import check_stabilization
 
 _METHODS = ("auto", "dense", "tridiagonal")
 
@@ -73,11 +73,11 @@ class Direct(Solver):
         Chains of fewer than 9 constraints are always solved densely (same system, same result).
       regularisation: relative diagonal regularisation (constraint force mixing), >= 0, a leaf; values below
         1e3 machine epsilons are raised to that.
-      stabilization: 'baumgarte' (default, above) or 'split' (static): split impulses. The same matrix is solved
-        for two right-hand sides, (J M^-1 J^T) lam = J v + curvature (no position error: lam is the physical
-        impulse; the curvature term as in `PGS`) and (J M^-1 J^T) lam_p = C / h, the whole error;
-        v_p = -M^-1 J^T lam_p moves the positions of the substep, x += h (v + v_p), and is discarded, so
-        position correction adds no kinetic energy. `beta` is not used.
+      stabilization: 'baumgarte' (default, above) or 'split' (static): split impulses, as in `PGS`, with exact
+        linear corrections: the same matrix is solved for J v + (beta / h) C over the constraints within their
+        adaptive slop (lam, the physical impulse), and for beta C over those beyond it, a position correction
+        that moves the positions of the substep and does not touch the velocities.
+      slop: split impulses' slop, as in `PGS`.
     """
 
     #: assembles its matrices in user particle order, so `jc.batched_rollout` batches it with `jax.vmap`
@@ -89,9 +89,11 @@ class Direct(Solver):
     method: str = static_field(default="auto")
     regularisation: Any = 1e-6
     stabilization: str = static_field(default="baumgarte")
+    slop: Any = 0.005
 
     def __post_init__(self):
         check_stabilization("Direct", self.stabilization)
+        check_scalar("Direct", "slop", self.slop, 0.0, 1.0)
         check_scalar("Direct", "beta", self.beta, 0.0, 1.0)
         check_int("Direct", "substeps", self.substeps, 1)
         check_scalar("Direct", "regularisation", self.regularisation, 0.0, 1.0)
@@ -124,14 +126,15 @@ class Direct(Solver):
         eps = _regularisation(self.regularisation, dtype)
 
         split = self.stabilization == "split"
+        share = jnp.asarray(self.slop, dtype)
 
         def substep(x, v, _lam, h):
             v = sys.apply_gravity(v, h)
             xu, vu = L.particles_out(topo, x), L.particles_out(topo, v)  # [n, dim], user order
             solve = _chain_solve if tri else functools.partial(_dense_solve, topo=topo)
-            lam_u, dvs = solve(xu, vu, w, rest, (1 if split else beta) / h, eps, split=h if split else None)
+            lam_u, dvs = solve(xu, vu, w, rest, beta / h, eps, slop=(share, h) if split else None)
             v = L.particles_in(topo, vu + dvs[0])
-            move = v if not split else v + L.particles_in(topo, dvs[1])    # split: + the pseudo-velocity
+            move = v if not split else v + L.particles_in(topo, dvs[1] / h)    # split: the excess's correction
             return x + h * move, v, L.constraints_in(topo, lam_u)
 
         return substepped(substep, self.substeps, x, v, lam, dt)
@@ -148,14 +151,15 @@ class Direct(Solver):
         rest = L.constraints_out(topo, sys.rest)[: topo.m_pairs]
         eps = _regularisation(self.regularisation, dtype)
         split = self.stabilization == "split"
+        share = jnp.asarray(self.slop, dtype)
         sets = _user_sets(sys)
 
         def substep(x, v, _lam, h):
             v = sys.apply_gravity(v, h)
             xu, vu = L.particles_out(topo, x), L.particles_out(topo, v)
-            lam_u, dvs = _rows_solve(xu, vu, w, rest, sets, topo, (1 if split else beta), h, eps, split)
+            lam_u, dvs = _rows_solve(xu, vu, w, rest, sets, topo, beta, h, eps, share if split else None)
             v = L.particles_in(topo, vu + dvs[0])
-            move = v if not split else v + L.particles_in(topo, dvs[1])
+            move = v if not split else v + L.particles_in(topo, dvs[1] / h)
             return x + h * move, v, L.constraints_in(topo, lam_u)
 
         return substepped(substep, self.substeps, x, v, lam, dt)
@@ -177,10 +181,12 @@ def _user_sets(sys):
     return out
 
 
-def _rows_solve(xu, vu, w, rest, sets, topo, beta, h, eps, split):
+def _rows_solve(xu, vu, w, rest, sets, topo, beta, h, eps, slop):
     """One dense solve over every row (rods and sets) of (J M^-1 J^T + Gamma) lam = J v + bias, Gamma =
-    alpha / h^2 on a set's compliant rows (their bias C / h; the others beta / h C, split: none, and the
-    correction apart). Returns (lam [m] user order, velocity changes as `_dense_solve`)."""
+    alpha / h^2 on a set's compliant rows (their bias C / h; the others beta / h C). With split impulses' `slop`
+    (the share), a rod's C beyond its adaptive slop (`_rhs`) moves to a second right-hand side, h beta / h C, the
+    position correction; a set's rows have no length scale and keep Baumgarte's bias. Returns (lam [m] user
+    order, velocity changes as `_dense_solve`)."""
     n, dim = xu.shape
     J, C, alpha = _all_rows(xu, rest, sets, topo)
     J = J.reshape(-1, n * dim)
@@ -192,11 +198,19 @@ def _rows_solve(xu, vu, w, rest, sets, topo, beta, h, eps, split):
     A = jnp.where(ok[:, None] & ok[None, :], A, 0) + jnp.diag(jnp.where(ok, eps * diag + g, 1))
     rel = -(J @ vu.reshape(-1))
     corr = jnp.where(alpha > 0, C / h, beta / h * C)
-    if split:       # the velocity solve keeps C(x + h v) = C(x) to second order (the motion's curvature)
-        curv = (_all_rows(xu + h * vu, rest, sets, topo, values=True) - C) / h - rel
-        cols = [rel + jnp.where(alpha > 0, corr, curv), jnp.where(alpha > 0, 0, corr)]
-    else:
+    if slop is None:
         cols = [rel + corr]
+    else:
+        inside = jnp.ones(C.shape, bool)
+        if topo.m_pairs:
+            i, j, mp = topo.i, topo.j, topo.m_pairs
+            dist, nrm = L.safe_norm(xu[j] - xu[i], axis=-1)
+            u = vu[j] - vu[i]
+            ut = u - nrm * jnp.sum(u * nrm, -1, keepdims=True)
+            steady = h * h * jnp.sum(ut * ut, -1) * L.safe_reciprocal(dist * jnp.maximum(beta, 1e-3))
+            rod_in = jnp.abs(C[:mp]) <= jnp.clip(steady, slop * rest, 0.1 * rest)
+            inside = inside.at[:mp].set(rod_in)
+        cols = [rel + jnp.where(inside, corr, 0), h * jnp.where(inside, 0, corr)]
     lams = jnp.linalg.solve(A, jnp.stack([jnp.where(ok, c, 0) for c in cols], -1))
     changes = tuple((J.T @ lams[:, c]).reshape(n, dim) * w[:, None] for c in range(lams.shape[1]))
     return lams[:, 0], changes
@@ -249,11 +263,12 @@ def _coupling(topo):
     return tuple(np.concatenate(x) for x in (a, b, p, s))
 
 
-def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, split=None):
+def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, slop=None):
     """One dense solve of J W J^T lam = b. The matrix is assembled entry by entry from the pairs of
     constraints that share a particle (O(sum of squared degrees), not O(m^2 n)); the solve is O(m^3).
-    Returns (lam, velocity changes): one change (-W J^T lam) for Baumgarte, or, with `split` (the (sub)step
-    h), the velocity change and the pseudo-velocity, from one solve with two right-hand sides."""
+    Returns (lam, velocity changes): one change (-W J^T lam) for Baumgarte, or, with split impulses' `slop`, the
+    velocity change (the bias of C clipped to the slop) and the correction of the rest (a position change),
+    from one solve with two right-hand sides (`_rhs`)."""
     i, j, m = topo.i, topo.j, topo.m
     dist, nrm = L.safe_norm(xu[j] - xu[i], axis=-1)          # [m], [m, dim]
     ok = ((w[i] + w[j]) > 0) & (dist > 0)
@@ -263,8 +278,7 @@ def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, split=None):
     both = ok[:, None] & ok[None, :]
     diag = jnp.diagonal(A)
     A = jnp.where(both, A, 0) + jnp.diag(jnp.where(ok, eps * diag, 1))
-    b = _rhs(ok, nrm, dist, vu[j] - vu[i], rate * (dist - rest), split)
-    lams = jnp.linalg.solve(A, b)                              # [m, 1 or 2]
+    lams = jnp.linalg.solve(A, _rhs(ok, nrm, vu[j] - vu[i], dist - rest, rest, rate, slop))     # [m, 1 or 2]
 
     def change(lam):
         p = nrm * lam[:, None]                                   # J^T lam: -p at i, +p at j
@@ -273,16 +287,27 @@ def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, split=None):
     return lams[:, 0], tuple(change(lams[:, c]) for c in range(lams.shape[1]))
 
 
-def _rhs(ok, nrm, dist, u, correction, split):
-    """[m, 1] right-hand side J v + (beta / h) C (u: the relative velocities [m, dim]), or with split impulses
-    (`split`: the (sub)step h) [m, 2]: J v plus the curvature of the motion (common.curvature_rate), and
-    (beta / h) C, apart."""
+def _rhs(ok, nrm, u, C, rest, rate, slop):
+    """[m, 1] right-hand side J v + rate C (u: the relative velocities [m, dim]; rate = beta / h), or with split
+    impulses' `slop` = (share, h) [m, 2]: J v + rate C where |C| is within each rod's slop (as
+    `common.split_slop`: twice its rotation's steady Baumgarte error, at least share L, at most L / 10), and
+    beta C where it is beyond (a position change: the exact linear correction, at Baumgarte's rate, gentler
+    where J M^-1 J^T is nearly singular, as on a cloth with shear rods)."""
     rel = jnp.sum(u * nrm, -1)
-    cols = [rel + curvature_rate(nrm, dist, u, split, axis=-1), correction] if split is not None else [rel + correction]
+    if slop is None:
+        cols = [rel + rate * C]
+    else:
+        share, h = slop
+        ut = u - nrm * jnp.sum(u * nrm, -1, keepdims=True)
+        dist = C + rest
+        steady = h * jnp.sum(ut * ut, -1) * L.safe_reciprocal(dist * jnp.maximum(rate, 1e-3 / h))
+        inside = jnp.abs(C) <= jnp.clip(steady, share * rest, 0.1 * rest)
+        cols = [rel + rate * jnp.where(inside, C, 0), h * rate * jnp.where(inside, 0, C)]
     return jnp.stack([jnp.where(ok, c, 0) for c in cols], -1)
 
 
-def _chain_solve(xu, vu, w, rest, rate, eps, *, split=None):
+def _chain_solve(xu, vu, w, rest, rate, eps, *, slop=None):
+    """`_dense_solve` for a simple chain, in O(n) (tridiagonal)."""
     # Constraint k joins particle k and k+1; n_k points from k to k+1 (lam is orientation-independent).
     dist, nrm = L.safe_norm(xu[1:] - xu[:-1], axis=-1)        # [m], [m, dim]
     ok = ((w[:-1] + w[1:]) > 0) & (dist > 0)
@@ -293,7 +318,7 @@ def _chain_solve(xu, vu, w, rest, rate, eps, *, split=None):
     dl = jnp.concatenate([zero, off])
     du = jnp.concatenate([off, zero])
     d = jnp.where(ok, diag * (1 + eps), 1)
-    lams = tridiagonal_solve(dl, d, du, _rhs(ok, nrm, dist, vu[1:] - vu[:-1], rate * (dist - rest), split))
+    lams = tridiagonal_solve(dl, d, du, _rhs(ok, nrm, vu[1:] - vu[:-1], dist - rest, rest, rate, slop))
 
     def change(lam):
         p = nrm * lam[:, None]                                     # [m, dim]

@@ -22,9 +22,11 @@ from jaxcon.solvers.common import (
     contact_end,
     frames,
     gamma,
+    grid_step,
     restitution_phases,
     row_solve,
     split_position_pass,
+    split_slop,
     velocity_bias,
     warm_start,
 )
@@ -71,6 +73,7 @@ class Jacobi(Solver):
       substeps: (sub)steps per step, static, >= 1.
       stabilization: 'baumgarte' (default) or 'split' (static): split impulses as in `PGS`, the position
         projection by Jacobi sweeps with the rods' relaxation (1 / largest degree by default).
+      slop: split impulses' slop, as in `PGS`.
     """
 
     iterations: int = static_field(default=20)
@@ -79,9 +82,11 @@ class Jacobi(Solver):
     warm_start: bool = static_field(default=True)
     substeps: int = static_field(default=1)
     stabilization: str = static_field(default="baumgarte")
+    slop: Any = 0.005
 
     def __post_init__(self):
         check_stabilization("Jacobi", self.stabilization)
+        check_scalar("Jacobi", "slop", self.slop, 0.0, 1.0)
         check_int("Jacobi", "iterations", self.iterations, 1)
         check_int("Jacobi", "substeps", self.substeps, 1)
         check_bool("Jacobi", "warm_start", self.warm_start)
@@ -100,13 +105,14 @@ class Jacobi(Solver):
         beta = jnp.asarray(self.beta, dtype)
         relax = (jnp.asarray(1.0 / max_degree(topo), dtype) if self.relaxation is None
                  else jnp.asarray(self.relaxation, dtype))
+        share = jnp.asarray(self.slop, dtype)
 
         def substep(x, v, lam_ws, h):
             v = sys.apply_gravity(v, h)
-            fr = frames(sys, x)
             split = self.stabilization == "split"
-            bias = (velocity_bias(topo, fr, jnp.zeros((), dtype), h, v, sys, x) if split
-                    else velocity_bias(topo, fr, beta, h))
+            fr = frames(sys, x)
+            slop = split_slop(sys, fr, v, h, beta, share) if split else None
+            bias = velocity_bias(topo, fr, beta, h, slop)
             if self.warm_start:
                 v, lam = warm_start(sys, v, fr, lam_ws)
             else:
@@ -128,22 +134,26 @@ class Jacobi(Solver):
 
             v, lam = lax.fori_loop(0, self.iterations, iterate, (v, lam))
             if split:
-                return split_position_pass(sys, x + h * v, self.iterations, relax), v, lam
+                return split_position_pass(sys, x + h * v, self.iterations, slop, relax), v, lam
             return x + h * v, v, lam
 
         return substepped(substep, self.substeps, x, v, lam, dt)
 
-    def _substep_contacts(self, sys, x, v, lam_ws, h):
+    def _substep_contacts(self, sys, x, v, lam_ws, h, found=None):
         """One (sub)step of a model with contacts (jaxcon.solvers.contact_jacobi): PGS's contact rows, warm start,
         time-of-impact correction and position safety pass, with rods and contacts solved in the same Jacobi
-        iterations. `relaxation=None` relaxes by mass splitting (per-particle counts of the rows that push)."""
+        iterations. `relaxation=None` relaxes by mass splitting (per-particle counts of the rows that push).
+        A grid model's step goes through `grid_step`, which calls this with its candidate pairs `found`."""
+        if sys.contact.ct.has_grid and found is None:
+            return grid_step(sys, x, v, h, functools.partial(self._substep_contacts, sys, x, v, lam_ws, h))
         topo = sys.topology
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
         relax = None if self.relaxation is None else jnp.asarray(self.relaxation, dtype)
         split = self.stabilization == "split"
-        v_free, v, fr, bias, obs, pairs, lam, imp = contact_begin(sys, x, v, lam_ws, beta, h, split,
-                                                                  self.warm_start)
+        share = jnp.asarray(self.slop, dtype)
+        v_free, v, fr, bias, obs, pairs, lam, imp, slop = contact_begin(sys, x, v, lam_ws, beta, h, share if split else None,
+                                                                  self.warm_start, found=found)
 
         def run(obs, pairs):
             return functools.partial(contact_jacobi.iteration(sys, fr, bias, obs, pairs, relax), 0)
@@ -152,5 +162,5 @@ class Jacobi(Solver):
         rods_pass = None
         if split and fr:
             rod_relax = jnp.asarray(1.0 / max_degree(topo), dtype) if relax is None else relax
-            rods_pass = lambda x: split_position_pass(sys, x, self.iterations, rod_relax)  # noqa: E731
+            rods_pass = lambda x: split_position_pass(sys, x, self.iterations, slop, rod_relax)  # noqa: E731
         return contact_end(sys, x, v, v_free, obs, pairs, imp, h, rods_pass=rods_pass), v, (lam, imp)

@@ -12,7 +12,7 @@ from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
-from jaxcon.solvers.common import clamp_ropes, frames
+from jaxcon.solvers.common import clamp_ropes, frames, shake_sweep
 
 # Sweep loops of at most this many iterations are unrolled (lets XLA fuse the small per-sweep ops; a few
 # times faster on small systems, same result).
@@ -60,58 +60,13 @@ class RATTLE(Solver):
         tol = jnp.asarray(self.tolerance, dtype)
         tiny = jnp.finfo(dtype).tiny
         fr0 = frames(sys, x)
-        rest2 = tuple(r * r for r in sys.rest)
         zero = tuple(jnp.zeros_like(f.C) for f in fr0)
 
         v, spring0 = _spring_kick(sys, fr0, v, h / 2)
         v = sys.apply_gravity(v, h / 2)
         x = x + h * v
 
-        def shake_set(xv, blk, rows):
-            """SHAKE for a set's rows: C_lib(x) moved to 0 along the start-of-step gradient J0 (the row's
-            mu = C_lib / (J(x) M^-1 J0^T), at least half of sqrt(J M^-1 J^T J0 M^-1 J0^T) as for a rod);
-            compliant rows are springs (`_spring_kick`) and take no part."""
-            x, v = xv
-            f0, ssys, mu = rows
-            f = R.set_frame(topo, blk, sys.cons[blk.generic], ssys, x, sys.w)
-            along = jnp.sum(f.w * jnp.sum(f.J * f0.J, axis=0), axis=0)
-            live = (f0.k > 0) & (f.k > 0) & (along > 0) & (f0.alpha == 0)
-            floor = 0.5 * jnp.sqrt(f.s * f0.s)
-            new = clamp_ropes(blk, mu + jnp.where(live, f.C / jnp.where(live, jnp.maximum(along, floor), 1), 0))
-            q = f0.J * (f0.w * (new - mu))
-            return (L.add_rows(topo, blk, x, q), L.add_rows(topo, blk, v, q / h)), new
-
-        def shake_colour(xv, blk, rows):
-            if getattr(blk, "generic", None) is not None:
-                return shake_set(xv, blk, rows)
-            x, v = xv
-            f, r2, mu = rows
-            xi, xj = L.gather_pair(topo, blk, x)
-            d = xj - xi
-            dist, _ = L.safe_length(d)
-            res = jnp.sum(d * d, axis=0) - r2
-            # SHAKE moves along the start-of-step direction n0 by res / (2 (w_i + w_j) d . n0). A rod of rest
-            # length 0 (or one that turned far within the step) has d . n0 near 0 and would be flung (1e44 m):
-            # d . n0 is taken as at least |d| / 2, which bounds the move by |d| and leaves other rods unchanged.
-            along = jnp.sum(d * f.n, axis=0)
-            live = (f.k > 0) & (along > 0)
-            rhs = jnp.where(live, res / (2 * jnp.where(live, jnp.maximum(along, 0.5 * dist), 1)), 0)
-            if getattr(blk, "star", False):        # a star's rows share the hub: solved together, every row updated
-                upd = L.block_solve(topo, blk, f, rhs)
-            else:
-                upd = jnp.where(live & (jnp.abs(res) > tol * 2 * r2), rhs * f.k, 0)
-            new = clamp_ropes(blk, mu + upd)
-            p = f.n * (new - mu)
-            pi, pj = f.wi * p, -f.wj * p
-            return (L.add_pair(topo, blk, x, pi, pj), L.add_pair(topo, blk, v, pi / h, pj / h)), new
-
-        def shake(_, carry):
-            x, v, mu = carry
-            mu = list(mu)
-            for c, (blk, f, r2) in enumerate(zip(topo.blocks, fr0, rest2)):
-                extra = sys.sets[blk.generic] if blk.generic is not None else r2
-                (x, v), mu[c] = L.each_colour(blk, shake_colour, (x, v), (f, extra, mu[c]))
-            return x, v, tuple(mu)
+        shake = shake_sweep(sys, fr0, h, tol)
 
         x, v, mu = lax.fori_loop(0, self.iterations, shake, (x, v, zero), unroll=self.iterations <= _UNROLL)
 
