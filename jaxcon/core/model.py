@@ -401,12 +401,8 @@ def build(
       friction, restitution: Coulomb mu >= 0 and e in [0, 1] of every contact (default 0 and 0).
       restitution_threshold: approach speed (m/s, default 0.5) below which an impact is inelastic, so that
         resting contacts (approach speed g dt per step) do not bounce.
-
-    Constraints of any kind (docs/constraints.md):
-      constraints: a list of `jc.Constraint` sets (user-written C(x), or the built-in kinds in
-        `jc.constraints`: bending, angle, angle_limits, area, volume, distance), after the rods and ropes in
-        lam. Each set is checked here: its particles in range and not all fixed, its function returning a
-        scalar for [k, dim] positions, its name unique (a repeated default name gets a suffix _1, _2, ...).
+      constraints: `jc.Constraint` sets of any kind (docs/constraints.md; built-ins in `jc.constraints`), after
+        the rods and ropes in lam; checked here (particles in range and not all fixed, fn scalar, unique names).
 
     Returns:
       (model, state).
@@ -415,7 +411,6 @@ def build(
     n, dim = x.shape
     is_fixed = _fixed_mask(fixed, n)
     inv_mass = _inverse_masses(masses, is_fixed, dtype)
-
     pairs, is_rope = _constraint_pairs(rods, ropes, n)
     sets = _constraint_sets(constraints, x, is_fixed, dtype)
     m = len(pairs) + sum(c.m for c in sets)
@@ -429,13 +424,12 @@ def build(
     rest = _rest_lengths(rest_lengths, positions, x, i, j, dtype)
     v = _velocities(velocities, x)
     g = _gravity("build", gravity, dim, dtype)
-    infos = tuple(SetInfo(c.particles.array, c.unilateral, c.name) for c in sets)
-    topo = _topology(n, dim, i, j, is_rope, colouring, grid_shape, layout, is_fixed, infos)
-    contact = dict(radius=radius, planes=planes, spheres=spheres, friction=friction, restitution=restitution,
-                   threshold=restitution_threshold)
+    topo = _topology(n, dim, i, j, is_rope, colouring, grid_shape, layout, is_fixed,
+                     tuple(SetInfo(c.particles.array, c.unilateral, c.name) for c in sets))
     model = Model(inv_mass, rest, g, topo, constraints=tuple(sets))
-    return _with_contacts(model, State(x, v, jnp.zeros(m, dtype)), contact_pairs_,
-                          has_contacts, grid=(grid_k, pairs), **contact)
+    return _with_contacts(model, State(x, v, jnp.zeros(m, dtype)), contact_pairs_, has_contacts, grid=(grid_k, pairs),
+                          radius=radius, planes=planes, spheres=spheres, friction=friction, restitution=restitution,
+                          threshold=restitution_threshold)
 
 
 def _positions(positions, dtype):

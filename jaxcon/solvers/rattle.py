@@ -75,10 +75,14 @@ class RATTLE(Solver):
         v = sys.apply_gravity(v, h / 2)
 
         def project_colour(v, blk, rows):
-            f, r, lam = rows
+            f, r, mu, lam = rows
             rel = R.rel(topo, blk, f, v)
             if getattr(blk, "generic", None) is not None:      # a set's hard rows: J(x) v = 0; compliant rows are springs
-                step = jnp.where(f.alpha == 0, rel * f.k, 0)
+                live = f.alpha == 0
+                if blk.has_rope:    # a unilateral row constrains the velocity only where the position stage held it
+                    held = (mu > 0) | (f.C >= 0)
+                    live = live & (held if blk.all_rope else (held | ~blk.rope.array))
+                step = jnp.where(live, rel * f.k, 0)
                 new = clamp_ropes(blk, lam + step)
                 return R.apply(topo, blk, f, v, new - lam), new
             active = jnp.abs(rel) * h > tol * r
@@ -93,7 +97,7 @@ class RATTLE(Solver):
             v, lam = carry
             lam = list(lam)
             for c, (blk, f, r) in enumerate(zip(topo.blocks, fr1, sys.rest)):
-                v, lam[c] = L.each_colour(blk, project_colour, v, (f, r, lam[c]))
+                v, lam[c] = L.each_colour(blk, project_colour, v, (f, r, mu[c], lam[c]))
             return v, tuple(lam)
 
         v, lam2 = lax.fori_loop(0, self.iterations, project, (v, zero), unroll=self.iterations <= _UNROLL)

@@ -33,7 +33,7 @@ def soft_coefficients(hertz, damping_ratio, h):
 def _sweep(topo, v, lam, fr, bias, mass_scale, impulse_scale, inv_h, spring=True):
     """One Gauss-Seidel sweep over the constraint colours with soft (or, mass_scale 1 and impulse_scale 0,
     rigid) rows; a slack rope (or unilateral row) is speculative and rigid. A constraint set's compliant rows
-    are their own springs instead (`common.row_solve`, bias C / h when `spring`, 0 in the relax sweeps), so a
+    are their own springs instead (`common.row_solve`, bias C / h; untouched by the relax sweeps), so a
     compliance means the same potential energy as in every other solver. Returns (v, lam)."""
     def colour(v, blk, rows):
         f, g, lam = rows
@@ -45,8 +45,8 @@ def _sweep(topo, v, lam, fr, bias, mass_scale, impulse_scale, inv_h, spring=True
             ms = jnp.where(slack, 1, ms)
             isc = jnp.where(slack, 0, isc)
         step = ms * L.block_solve(topo, blk, f, rel + b) - isc * lam
-        if g is not None:
-            own = row_solve(topo, blk, f, rel + (f.C * inv_h if spring else 0), lam, g)
+        if g is not None:       # the relax sweeps leave compliant rows alone: their spring impulse is the solve's
+            own = row_solve(topo, blk, f, rel + f.C * inv_h, lam, g) if spring else jnp.zeros_like(step)
             step = jnp.where(f.alpha > 0, own, step)
         new = clamp_ropes(blk, lam + step)
         return R.apply(topo, blk, f, v, new - lam), new
