@@ -91,3 +91,26 @@ def describe(method=None) -> str:
         method = "scipy" if have_scipy() else "rk4"
     return ("reduced (angle) coordinates, scipy DOP853, rtol = atol = 1e-12, float64" if method == "scipy"
             else "reduced (angle) coordinates, classical RK4, h = 1e-4 s, float64 NumPy")
+
+
+#: The recording of issue 23: a planar double pendulum started mid-swing at angular velocities the fit does not
+#: know, recorded at 30 Hz for 3 s with 2 mm of Gaussian noise on every coordinate (seed 23).
+RECORDING = dict(masses=(1.0, 0.7), lengths=(0.9, 0.6), angles=(1.0, -0.5), omegas=(1.5, -2.0), rate=30.0,
+                 duration=3.0, noise=2e-3, seed=23, g=9.81)
+
+
+def double_pendulum_recording(seed=None, noise=None, method=None, **changes):
+    """A recording made without jaxcon: the double pendulum of `RECORDING` (any of its entries may be changed by
+    keyword) integrated in angle coordinates (`chain_positions`, DOP853 at 1e-12), sampled at `rate` Hz from
+    t = 0 to `duration` s inclusive, the bobs' positions perturbed by `noise` m of Gaussian noise
+    (np.random.default_rng(seed)).
+
+    Returns (t [S], observed [S, 2, 2] noisy bob positions, truth [S, 2, 2] exact positions, spec dict)."""
+    spec = dict(RECORDING, **changes)
+    spec["seed"] = spec["seed"] if seed is None else seed
+    spec["noise"] = spec["noise"] if noise is None else noise
+    t = np.arange(int(round(spec["duration"] * spec["rate"])) + 1) / spec["rate"]
+    truth = chain_positions(spec["angles"], spec["lengths"], spec["masses"], t, spec["g"], spec["omegas"],
+                            method=method)
+    rng = np.random.default_rng(spec["seed"])
+    return t, truth + spec["noise"] * rng.standard_normal(truth.shape), truth, spec
