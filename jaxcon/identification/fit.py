@@ -24,7 +24,7 @@ from jaxcon.identification import uncertainty as unc
 from jaxcon.identification.params import (  # noqa: F401  (re-exported: older imports name them here)
     STATE_PARAMS, TRANSFORMS, ParamSet, _check_transforms_and_bounds, _decode, _encode, _get, _owner, _Param,
     _parameters, _set, _tree_replace, default_params, named_params, setup_params, tangent_velocities)
-from jaxcon.identification.uncertainty import IdentifiabilityWarning  # noqa: F401
+from jaxcon.identification.uncertainty import IdentifiabilityWarning, MisfitWarning  # noqa: F401
 
 Array = Any
 
@@ -331,9 +331,9 @@ fit.__doc__ = """Fit parameters of `model`, `solver` and the initial state to ob
         impulses). "v0" fitted from zero velocities starts from the first observed frames (the derivative at
         t = 0 of the polynomial through up to 3 of them, made consistent with the rods). With `setup`: the
         initial values theta0, a pytree of floats; FitResult.params is then the fitted pytree.
-      setup: f(theta, model, state, solver) -> (model, state, solver), putting theta into them (with
-        `model.replace`-free leaf swaps: `jaxcon.identification.params._tree_replace`, or `dataclasses.replace`
-        on the state). `state` is passed as given (batched when `observed` is).
+      setup: f(theta, model, state, solver) -> (model, state, solver), putting theta into them with
+        `model.replace(...)`, `state.replace(...)`, `solver.replace(...)` and jax.numpy (it is traced). `state`
+        is passed as given (batched when `observed` is).
       observed_particles: [k] particle indices that `observed` holds (default: all, in order).
       sample_steps: [S] increasing whole step counts >= 0 at which the positions were observed: observed[s] is
         the position after sample_steps[s] steps, 0 the initial state (default 1..S). The rollout runs
@@ -635,6 +635,7 @@ def _result(problem, method, best_u, u0, data, lam_starts, history, horizons, re
         if found is not None:
             std, unidentified = unc.std_like(pset, best_u["theta"], found.std_u), found.unidentified
             unc.warn_unidentified(unidentified, pset, stacklevel=4)
+    unc.warn_misfit(corr, err, stacklevel=4)
     ws = _window_states(best_u, lam_starts, ob.batched) if windows else None
     state = st_b if ob.batched else jax.tree.map(lambda a: a[0], st_b)
     return FitResult(m, s, pset.decode(best_u["theta"]), np.asarray(history), len(history), converged, ws, reason,

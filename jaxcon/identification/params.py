@@ -189,6 +189,10 @@ def _check_transforms_and_bounds(params, transforms, bounds):
 def _param_names(params) -> tuple:
     if isinstance(params, str):
         params = (params,)
+    if isinstance(params, dict):
+        raise TypeError(f"fit: `params` is a dict of values: to fit a pytree theta0 pass setup=f, "
+                        "f(theta, model, state, solver) -> (model, state, solver); named parameters are a tuple "
+                        "of names")
     try:
         params = tuple(params)
     except TypeError:

@@ -19,8 +19,10 @@ LOG_BOUND_FACTOR = 1e8
 #: A logit-parameterised value ran to a bound when it lies within this fraction of its range of lo or hi.
 LOGIT_BOUND_MARGIN = 1e-4
 #: The fitted result is a misfit (not converged) when its position errors have a lag-1 correlation from frame to
-#: frame above this: what is left is mostly the model missing the motion, not measurement noise.
+#: frame above this: what is left is mostly the model missing the motion, not measurement noise. Below it, a
+#: correlation above MISFIT_SIGMAS / sqrt(pairs of frames) (beyond chance for white noise) gets a MisfitWarning.
 MISFIT_CORRELATION = 0.5
+MISFIT_SIGMAS = 4.0
 #: A direction of the (Jacobi-scaled) Gauss-Newton matrix J^T J with an eigenvalue below this fraction of the
 #: largest is one the data do not determine (a singular value ratio of 1e-5).
 NULL_RTOL = 1e-10
@@ -28,6 +30,11 @@ NULL_RTOL = 1e-10
 
 class IdentifiabilityWarning(UserWarning):
     """`jc.fit`: some combination of the fitted parameters is not determined by the data."""
+
+
+class MisfitWarning(UserWarning):
+    """`jc.fit`: the errors left are correlated from frame to frame beyond chance: part of them is the model
+    missing the motion, not noise, so `std` (which assumes noise) understates the uncertainty."""
 
 
 def at_bounds(pset, u, u0) -> list:
@@ -194,3 +201,17 @@ def residual_correlation(err, obs):
     if not np.isfinite(ss) or ss <= 0 or np.sqrt(ss / err.size) < 1e-5 * motion:
         return None
     return float(np.sum(err[:, 1:] * err[:, :-1]) / ss)
+
+
+def warn_misfit(corr, err, stacklevel=2):
+    """A MisfitWarning when the errors' lag-1 correlation `corr` is beyond chance for white noise (above
+    MISFIT_SIGMAS / sqrt(pairs)) but not a misfit (<= MISFIT_CORRELATION, which fails the fit instead)."""
+    pairs = err.size // err.shape[1] * (err.shape[1] - 1)
+    if corr is None or corr > MISFIT_CORRELATION or corr <= MISFIT_SIGMAS / np.sqrt(pairs):
+        return
+    warnings.warn(
+        f"fit: the position errors left (RMS {1e3 * np.sqrt(np.mean(err ** 2)):.3g} mm) are correlated from frame to "
+        f"frame ({corr:.2f}, beyond chance for noise: {MISFIT_SIGMAS:g} / sqrt({pairs}) = "
+        f"{MISFIT_SIGMAS / np.sqrt(pairs):.2f}): part of them is the model missing the motion, so the fitted "
+        "values may be off by more than their std. A solver with a smaller forward error at this dt (a smaller "
+        "dt, RATTLE; docs/fitting.md) or a missing parameter would remove it.", MisfitWarning, stacklevel=stacklevel)
