@@ -394,7 +394,7 @@ def _optimizer(optimizer, learning_rate, problem, u0, dtype) -> "_Method":
     scalars), else an optax transformation (Adam by default)."""
     n_scalars = sum(int(np.size(v)) for v in jax.tree.leaves(u0))
     if optimizer in _LM_NAMES or (optimizer in (None, "auto") and n_scalars <= LM_MAX_PARAMS):
-        mu0 = jnp.asarray([1e-3, 2.0], dtype)       # Levenberg-Marquardt damping and its growth factor
+        mu0 = jnp.asarray(1e-3, dtype)       # Levenberg-Marquardt damping
         return _Method(_lm_core(problem), lambda u: mu0, True)
     opt = optax.adam(learning_rate) if optimizer in (None, "auto", "adam") else optimizer
     opt = optax.with_extra_args_support(opt)     # plain transformations ignore value / value_fn
@@ -519,16 +519,11 @@ def _lm_core(problem):
         finite = jnp.all(jnp.isfinite(J))        # a non-finite Jacobian: every step would be refused forever
         A, g = J.T @ J, J.T @ r
         D = jnp.diag(jnp.diag(A)) + jnp.finfo(r.dtype).eps * jnp.eye(len(z0), dtype=r.dtype)
-        dz = -jnp.linalg.solve(A + mu[0] * D, g)
+        dz = -jnp.linalg.solve(A + mu * D, g)
         new = jnp.sum(f(z0 + dz)[0] ** 2)
         ok = jnp.isfinite(new) & (new < value)
         z = jnp.where(ok, z0 + dz, z0)
-        # Nielsen's damping update from the gain ratio (actual over predicted reduction): a step the linear model
-        # predicted badly is taken but damps the next one, a refused step doubles the growth factor
-        predicted = -(2 * dz @ g + dz @ (A @ dz))
-        rho = (value - new) / jnp.maximum(predicted, jnp.finfo(r.dtype).tiny)
-        grown = mu[0] * jnp.maximum(1 / 3, 1 - (2 * jnp.minimum(rho, 1) - 1) ** 3)
-        mu = jnp.where(ok, jnp.stack([jnp.maximum(grown, 1e-12), 2.0]), jnp.stack([mu[0] * mu[1], 2 * mu[1]]))
+        mu = jnp.where(ok, jnp.maximum(mu / 3, 1e-12), mu * 4)
         return unravel(z), mu, value, full, finite, (J, r, aux)
 
     return core
