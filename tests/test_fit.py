@@ -68,9 +68,11 @@ def test_fit_observed_subset_batch_and_sample_steps():
     _, tr = jax.vmap(lambda s: jc.rollout(truth, s, solver, DT, 120))(states)
     ss = np.arange(4, 121, 4)
     obs = tr.x[:, ss - 1][:, :, [2, 5]]
-    res = jc.fit(model, states, solver, DT, obs, ("inv_mass", "gravity"), observed_particles=[2, 5],
-                 sample_steps=ss, optimizer="lm", steps=30, patience=5, progress=False)
-    # only mass ratios are observable (scaling every mass leaves the motion unchanged)
+    # only mass ratios are observable (scaling every mass leaves the motion unchanged), and the fit says so
+    with pytest.warns(jc.IdentifiabilityWarning, match=r"log inv_mass\[1\].*log inv_mass\[5\]"):
+        res = jc.fit(model, states, solver, DT, obs, ("inv_mass", "gravity"), observed_particles=[2, 5],
+                     sample_steps=ss, optimizer="lm", steps=30, patience=5, progress=False)
+    assert np.all(np.isinf(np.asarray(res.std["inv_mass"])[1:])) and np.isfinite(np.asarray(res.std["gravity"])).all()
     w, wt = np.asarray(res.model.inv_mass), np.asarray(truth.inv_mass)
     np.testing.assert_allclose(w[1:] / w[1], wt[1:] / wt[1], rtol=1e-4)
     assert res.model.inv_mass[0] == 0       # the fixed pivot stays fixed (log transform keeps zeros)

@@ -402,9 +402,9 @@ def _optimizer(optimizer, learning_rate, problem, u0, dtype) -> "_Method":
 
 
 class _Method(NamedTuple):
-    core: Callable     # jitted (u, opt_state, data, horizon) -> (u, opt_state, value, full, finite, (J, r, aux))
+    core: Callable     # jitted (u, opt_state, data, horizon) -> (u, opt_state, value, full, finite, (J, err))
     init: Callable     # u -> opt_state
-    lm: bool           # core returns the Jacobian J of the residuals r at u (else J and r are None)
+    lm: bool           # core returns the Jacobian J of the residuals at u (else None), and the position errors
 
 
 def _window_states(best_u, lam_starts, batched) -> State:
@@ -457,7 +457,7 @@ class _Problem:
 
     def residuals(self, u, data, horizon):
         """(r, full, aux): residuals r with stage loss sum(r^2) (samples after `horizon` steps masked, each part
-        a mean), the loss over the whole record, and aux = (the trajectory [B, T, ...], its start state, the
+        a mean), the loss over the whole record, and aux = (the rollout [B, T, ...] and its start state, the
         position errors [B, S, k, dim] of the whole record)."""
         obs_b, state_b, lam_starts = data
         ob = self.ob
@@ -524,7 +524,7 @@ def _lm_core(problem):
         ok = jnp.isfinite(new) & (new < value)
         z = jnp.where(ok, z0 + dz, z0)
         mu = jnp.where(ok, jnp.maximum(mu / 3, 1e-12), mu * 4)
-        return unravel(z), mu, value, full, finite, (J, r, aux)
+        return unravel(z), mu, value, full, finite, (J, aux[2])
 
     return core
 
@@ -540,7 +540,7 @@ def _optax_core(problem, opt):
         upd, opt_state = opt.update(grad, opt_state, u, value=value, grad=grad,
                                     value_fn=lambda v: stage_loss(v, data, horizon)[0])
         finite = jnp.all(jnp.isfinite(jax.flatten_util.ravel_pytree(grad)[0]))
-        return optax.apply_updates(u, upd), opt_state, value, full, finite, (None, None, aux)
+        return optax.apply_updates(u, upd), opt_state, value, full, finite, (None, aux[2])
 
     return core
 
@@ -611,12 +611,13 @@ def _result(problem, method, best_u, u0, data, lam_starts, history, horizons, re
     identifiability of the fitted parameters."""
     pset, ob, windows = problem.pset, problem.ob, problem.n_win > 1
     T = jnp.asarray(ob.T)
-    J, _, (traj, start, err) = method.core(best_u, method.init(best_u), data, T)[5]
+    J, err = method.core(best_u, method.init(best_u), data, T)[5]
+    diag = _checked_rollout(problem)(best_u, data, T)
     if not method.lm and not windows and n_fitted <= STD_MAX_PARAMS:
         J = _jacobian(problem)(best_u, data, T)
     err = np.asarray(err, np.float64)
     m, st_b, s = problem.start(best_u, data[1])
-    failures, corr = _failures(pset, ob, best_u, u0, m, traj, start, err)
+    failures, corr = _failures(pset, ob, best_u, u0, diag, err)
     if failures:
         converged, reason = False, "; ".join([reason] + failures)
     std, unidentified = None, ()
@@ -637,16 +638,28 @@ def _result(problem, method, best_u, u0, data, lam_starts, history, horizons, re
                      np.asarray(horizons), state, std, float(np.sqrt(np.mean(err ** 2))), unidentified, corr)
 
 
-def _failures(pset, ob, best_u, u0, m, traj, start, err):
+def _checked_rollout(problem):
+    """(diverged [B], first bad step [B]) of jc.diagnose on the rollout of u: one forward program, compiled once
+    after the fit (inside the update it cost the 16x16 cloth fit 1.2 s of compilation and 8% per update)."""
+    @jax.jit
+    def check(u, data, horizon):
+        traj, start, _ = problem.residuals(u, data, horizon)[2]
+        m = problem.start(u, data[1])[0]
+        d = jax.vmap(diagnose, in_axes=(None, 0, 0))(m, traj, start)
+        return d.diverged, d.first_bad
+
+    return check
+
+
+def _failures(pset, ob, best_u, u0, diag, err):
     """(what is wrong with the fitted result, as text; the residuals' lag-1 correlation): a rollout that
     jc.diagnose flags, a value at a bound of its transform, residuals that are correlated in time."""
     failures = []
-    diag = jax.vmap(diagnose, in_axes=(None, 0, 0))(m, traj, start)
-    bad = np.asarray(diag.diverged)
+    bad = np.asarray(diag[0])
     if bad.any():
         b = int(np.argmax(bad))
         failures.append(f"diverged: jc.diagnose flags the fitted rollout{f' of trajectory {b}' if ob.batched else ''}"
-                        f" from step {int(np.asarray(diag.first_bad)[b]) + 1} (non-finite, a constraint off by "
+                        f" from step {int(np.asarray(diag[1])[b]) + 1} (non-finite, a constraint off by "
                         "more than its length, or an energy gain)")
     hits = unc.at_bounds(pset, best_u["theta"], u0["theta"])
     if hits:
