@@ -251,7 +251,7 @@ def test_setup_and_params_are_checked_before_anything_is_traced():
 
 def test_setup_works_with_windows_batches_and_first_order_optimisers():
     """A global scale on all rest lengths (one scalar), a single pendulum from SciPy at two release angles:
-    batched, windowed and with Adam, through setup=, compiled small."""
+    batched, windowed and with Adam at once, through setup= (one small compilation)."""
     t = np.arange(0, 41) * DT
     obs = np.stack([chain_positions([a], [0.8], [1.0], t) for a in (0.5, 1.0)])            # [2, 41, 1, 2]
     model, state = jc.scenes.pendulum(length=1.0, angle=0.5)
@@ -261,11 +261,9 @@ def test_setup_works_with_windows_batches_and_first_order_optimisers():
     def scale_all(theta, m, s, sv):                 # lengths and the start laid out with them
         return m.replace(rest_length=theta["scale"] * m.rest_length), s.replace(x=theta["scale"] * s.x), sv
 
-    ss = np.arange(41)
     res = jc.fit(model, states, jc.RATTLE(), DT, obs, {"scale": 1.0}, setup=scale_all, observed_particles=[1],
-                 sample_steps=ss, window=20, transforms={"scale": "log"}, progress=False)
-    assert abs(float(res.params["scale"]) - 0.8) < 1e-3 and res.std is None and res.window_states.x.shape[0] == 2
-    res = jc.fit(model, states, jc.RATTLE(), DT, obs, {"scale": 1.0}, setup=scale_all, observed_particles=[1],
-                 sample_steps=ss, optimizer="adam", learning_rate=0.05, steps=60, progress=False)
-    assert abs(float(res.params["scale"]) - 0.8) < 0.02 and np.isfinite(float(res.std["scale"]))
+                 sample_steps=np.arange(41), window=20, transforms={"scale": "log"}, optimizer="adam",
+                 learning_rate=0.05, steps=60, progress=False)
+    assert abs(float(res.params["scale"]) - 0.8) < 0.01, res.params
+    assert res.std is None and res.window_states.x.shape[0] == 2       # no std with windows (docs/fitting.md)
     np.testing.assert_allclose(res.state.x[:, 1], float(res.params["scale"]) * np.asarray(states.x[:, 1]))
