@@ -179,3 +179,46 @@ def test_contact_grid_bench_times_all_pairs_at_every_size():
     model, _ = scene(n, "all")
     assert not model.contact.has_grid and model.contact.n_pairs == n * (n - 1) // 2
     assert scene(n, "grid")[0].contact.has_grid
+
+
+def _row(xs, vs, dim):
+    """Discs (dim 2) or balls (dim 3) of radius 5 cm on the x axis, no gravity, elastic at every speed."""
+    x, v = np.zeros((len(xs), dim)), np.zeros((len(xs), dim))
+    x[:, 0], v[:, 0] = xs, vs
+    return x, v
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_an_impact_cannot_send_a_disc_through_one_that_was_no_candidate(dim):
+    """B hits A at 30 m/s; A is 5 cm from C, too far for the search made with the velocities before the solve
+    (A is at rest). The grid used to move A straight through C in one step (x_A 0.60, 1.10, 1.60 with C left
+    at 0.26, no overflow); `grid_step` now finds the pair on A's path, solves the step again with it, and
+    passes the momentum on as all pairs do."""
+    x, v = _row([0.11, -0.3, 0.26], [0.0, 30.0, 0.0], dim)
+    runs = {}
+    for collide in (True, "grid"):
+        model, state = jc.build(x, np.ones(3), velocities=v, gravity=np.zeros(dim), radius=0.05, collide=collide,
+                                restitution=1.0, restitution_threshold=0.0)
+        _, runs[collide] = jc.rollout(model, state, jc.PGS(10), 1 / 60, 4)
+    grid, pairs = runs["grid"], runs[True]
+    xs = np.asarray(grid.x[:, :, 0])
+    assert np.all((xs[:, 1] < xs[:, 0]) & (xs[:, 0] < xs[:, 2]))              # B, A, C keep their order
+    gaps = np.linalg.norm(np.asarray(grid.x)[:, [0, 0, 1]] - np.asarray(grid.x)[:, [1, 2, 2]], axis=-1)
+    assert gaps.min() > 0.1 * (1 - 1e-3)
+    assert int(np.max(grid.contact_overflow)) == 0
+    np.testing.assert_allclose(np.asarray(grid.v[:, :, 0]).sum(1), 30.0, rtol=1e-12)      # momentum
+    # the same outcome as all pairs: B -9 m/s, A and C at 18 and 21 m/s (the slot-by-slot solve ends 0.03 off)
+    np.testing.assert_allclose(np.asarray(grid.v), np.asarray(pairs.v), atol=0.05)
+    np.testing.assert_allclose(np.asarray(grid.x), np.asarray(pairs.x), atol=2e-3)
+
+
+def test_a_pair_the_second_solve_still_misses_is_counted():
+    """With a fourth disc D 5 cm beyond C, the second solve sends C into D, which neither search listed:
+    GRID_ATTEMPTS = 2 solves cannot follow the chain, and the overflow says so (1 pair in the first step)."""
+    x, v = _row([0.11, -0.3, 0.26, 0.41], [0.0, 30.0, 0.0, 0.0], 2)
+    model, state = jc.build(x, np.ones(4), velocities=v, gravity=np.zeros(2), radius=0.05, collide="grid",
+                            restitution=1.0, restitution_threshold=0.0)
+    _, traj = jc.rollout(model, state, jc.PGS(10), 1 / 60, 2)
+    assert int(traj.contact_overflow[0]) > 0
+    xs = np.asarray(traj.x[:, :, 0])
+    assert np.all(np.diff(xs[:, [1, 0, 2, 3]], axis=1) > 0)                  # none passed through another

@@ -154,16 +154,28 @@ def layout_generic(solver, model=None) -> bool:
                                                                        and not model.topology.has_stars))
 
 
-def _minor(model, states, solver, dt, steps, save_every):
-    """One batch-minor rollout of every state in `states` ([b, ...] leaves)."""
+def drive_in(t: Topology, forces, targets, dtype):
+    """A batch's inputs -> batch-minor: forces [B, steps, n, dim] -> [steps, dim, *view, B]; targets
+    [B, steps, n_fixed, dim] -> [steps, dim, n_fixed * B] (copy b of the k-th fixed particle at k * B + b,
+    the order of `sim.fixed_slots` on the batch-minor topology). Either may be None."""
+    f = None if forces is None else particles_in(t, jnp.moveaxis(jnp.asarray(forces, dtype), 0, 1))
+    if targets is not None:
+        a = jnp.transpose(jnp.asarray(targets, dtype), (1, 3, 2, 0))            # [steps, dim, n_fixed, B]
+        targets = a.reshape(a.shape[:2] + (-1,))
+    return f, targets
+
+
+def _minor(model, states, solver, dt, steps, save_every, drive=(None, None)):
+    """One batch-minor rollout of every state in `states` ([b, ...] leaves), under `drive` = (forces, targets)
+    with the same leading axis b (or None)."""
     t, dtype, B = model.topology.unrolled, jnp.result_type(states.x), states.x.shape[0]
     tb = batch_minor_topology(t, B)
     sys = system(model, tb, dtype, B)
     x = particles_in(t, jnp.asarray(states.x, dtype))
-    v = particles_in(t, jnp.asarray(states.v, dtype))
+    v = _sim.hold_fixed(tb, particles_in(t, jnp.asarray(states.v, dtype)))
     lam = constraints_in(t, jnp.asarray(states.lam, dtype), B)
     (x, v, lam), (xs, vs, lams) = _sim._time_loop(sys, solver, (x, v, lam), jnp.asarray(dt, dtype), steps,
-                                                  save_every)
+                                                  save_every, drive=drive_in(t, *drive, dtype))
     final = State(particles_out(t, x), particles_out(t, v), constraints_out(t, lam, B))
     lead = lambda a: jnp.moveaxis(a, 0, 1)          # noqa: E731  records come out [T, B, ...]; the batch leads
     return final, Trajectory(lead(particles_out(t, xs)), lead(particles_out(t, vs)), lead(flat_blocks_out(t, lams, B)))
@@ -202,32 +214,40 @@ def _pad(tree, multiple):
     return jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)]), tree)
 
 
-def _local(model, states, solver, dt, steps, save_every, chunk):
-    """The batch held by one device: batch-minor in chunks of `chunk` (None: one piece), or `jax.vmap` over
-    chunks for solvers that are not layout-generic."""
-    b = states.x.shape[0]
+def _local(model, batch, solver, dt, steps, save_every, chunk):
+    """The batch held by one device, `batch` = (states, (forces, targets)) with leading batch axes: batch-minor in
+    chunks of `chunk` (None: one piece), or `jax.vmap` over chunks for solvers that are not layout-generic."""
+    b = batch[0].x.shape[0]
     if not layout_generic(solver, model):
-        one = lambda s: _sim._rollout_jit(model, s, solver, dt, steps, save_every)     # noqa: E731
-        return _map(one, states, min(chunk or b, b))
+        one = lambda a: _sim._rollout_jit(model, a[0], solver, dt, steps, save_every, None, True,  # noqa: E731
+                                          *a[1])
+        return _map(one, batch, min(chunk or b, b))
     if chunk is None or chunk >= b:
-        return _minor(model, states, solver, dt, steps, save_every)
-    padded = _pad(states, chunk)
-    n = padded.x.shape[0] // chunk
+        return _minor(model, batch[0], solver, dt, steps, save_every, batch[1])
+    padded = _pad(batch, chunk)
+    n = padded[0].x.shape[0] // chunk
     parts = jax.tree.map(lambda a: a.reshape((n, chunk) + a.shape[1:]), padded)
-    out = lax.map(lambda s: _minor(model, s, solver, dt, steps, save_every), parts)
+    out = lax.map(lambda a: _minor(model, a[0], solver, dt, steps, save_every, a[1]), parts)
     return jax.tree.map(lambda a: a.reshape((n * chunk,) + a.shape[2:])[:b], out)
 
 
+def _per_copy(a, b):
+    """forces / targets with a leading batch axis of b: [b, steps, ., dim] as given, or an array without the
+    batch axis ([steps, ., dim], shared by every copy) repeated b times; None stays None."""
+    return a if a is None or jnp.ndim(a) == 4 else jnp.broadcast_to(a, (b,) + jnp.shape(a))
+
+
 @functools.partial(jax.jit, static_argnames=("steps", "save_every", "chunk", "mesh"))
-def _batched_jit(model, states, solver, dt, steps, save_every, chunk, mesh=None):
-    if mesh is None or mesh.size == 1:
-        return _local(model, states, solver, dt, steps, save_every, chunk)
+def _batched_jit(model, states, solver, dt, steps, save_every, chunk, mesh=None, forces=None, targets=None):
     b = states.x.shape[0]
+    batch = (states, tuple(_per_copy(a, b) for a in (forces, targets)))
+    if mesh is None or mesh.size == 1:
+        return _local(model, batch, solver, dt, steps, save_every, chunk)
     axis = mesh.axis_names
     spec, rep = PartitionSpec(axis), PartitionSpec()
-    local = jax.shard_map(lambda m, s, so, h: _local(m, s, so, h, steps, save_every, chunk), mesh=mesh,
+    local = jax.shard_map(lambda m, a, so, h: _local(m, a, so, h, steps, save_every, chunk), mesh=mesh,
                           in_specs=(rep, spec, rep, rep), out_specs=spec, check_vma=False)
-    out = local(model, _pad(states, mesh.size), solver, jnp.asarray(dt))
+    out = local(model, _pad(batch, mesh.size), solver, jnp.asarray(dt))
     return out if out[0].x.shape[0] == b else jax.tree.map(lambda a: a[:b], out)
 
 
@@ -266,7 +286,7 @@ def default_chunk(devices) -> int | None:
 
 
 def batched_rollout(model: Model, states: State, solver: Solver, dt, steps: int, *, chunk: int | None = None,
-                    save_every: int = 1, devices=None, mesh=None):
+                    save_every: int = 1, devices=None, mesh=None, forces=None, targets=None):
     """`rollout` of a batch of initial states (x, v [B, n, dim], lam [B, m]) with one model and solver.
 
     The batch runs in the batch-minor layout (module docstring): one system of B disjoint copies, every array
@@ -282,17 +302,20 @@ def batched_rollout(model: Model, states: State, solver: Solver, dt, steps: int,
         evenly is padded with copies of its last state, which are dropped from the results.
       mesh: instead of `devices`, a `jax.sharding.Mesh` whose axes together shard the batch (for example a
         global mesh after `jax.distributed.initialize()`; docs/batching.md).
+      forces, targets: as for `rollout`, per copy with a leading batch axis ([B, steps, n, dim],
+        [B, steps, n_fixed, dim]), or without it ([steps, n, dim], [steps, n_fixed, dim]): shared by every copy.
 
     Returns (finals, trajs) with a leading batch axis, sharded over the devices like the input batch.
     """
-    _check_batch(model, states, solver, dt, steps, save_every, chunk)
+    forces, targets = _check_batch(model, states, solver, dt, steps, save_every, chunk, forces, targets)
     mesh = _mesh(devices, mesh)
     if chunk is None:
         chunk = default_chunk(mesh.devices.flat)
-    return _batched_jit(model, states, solver, dt, steps, save_every, chunk, mesh if mesh.size > 1 else None)
+    return _batched_jit(model, states, solver, dt, steps, save_every, chunk, mesh if mesh.size > 1 else None,
+                        forces, targets)
 
 
-def _check_batch(model, states, solver, dt, steps, save_every, chunk):
+def _check_batch(model, states, solver, dt, steps, save_every, chunk, forces=None, targets=None):
     if not isinstance(states, State):
         raise TypeError(f"batched_rollout: `states` must be a jaxcon State, got {type(states).__name__}")
     if np.ndim(states.x) != 3:
@@ -318,4 +341,7 @@ def _check_batch(model, states, solver, dt, steps, save_every, chunk):
         check_partners("batched_rollout", "states.contact_partners", states.contact_partners)
     if steps % save_every:
         raise ValueError(f"batched_rollout: `steps` ({steps}) must be a multiple of `save_every` ({save_every})")
-    _sim.check_record_memory("batched_rollout", model, first, steps, save_every, batch=int(np.shape(states.x)[0]))
+    forces, targets = _sim.check_drive("batched_rollout", model, forces, targets, steps, batch=B)
+    _sim.check_record_memory("batched_rollout", model, first, steps, save_every, batch=B,
+                             inputs=_sim.drive_bytes(model, first, steps, forces, targets, B))
+    return forces, targets

@@ -20,6 +20,8 @@ class System:
       w:       [1, *view] inverse masses.
       rest:    tuple, per block, of rest lengths [*block.shape].
       gravity: [dim].
+      accel:   None, or this step's external acceleration w F [dim, *view] from the user's `forces` (set by the
+               time loop for each step; `apply_gravity` adds it, so every solver and substep sees it).
     """
 
     w: Array
@@ -27,6 +29,7 @@ class System:
     gravity: Array
     topology: Topology = static_field()
     contact: Any = None          # a ContactSystem (jaxcon.solvers.contact) for models with contacts
+    accel: Any = None            # the step's external acceleration w F [dim, *view], or None
 
     @classmethod
     def from_model(cls, model: Model, dtype) -> "System":
@@ -37,8 +40,10 @@ class System:
         return cls(w, rest, jnp.asarray(model.gravity, dtype), t, ContactSystem.from_model(model, dtype))
 
     def apply_gravity(self, v, h):
+        """v + h (g + w F): gravity on the free particles, and the step's external forces (`accel`) if any."""
         g = self.gravity.reshape((-1,) + (1,) * len(self.topology.view))
-        return v + h * g * (self.w > 0).astype(v.dtype)
+        v = v + h * g * (self.w > 0).astype(v.dtype)
+        return v if self.accel is None else v + h * self.accel
 
 
 class Solver:

@@ -25,7 +25,14 @@ k = 0). A PGS sweep solves them after the obstacles slot by slot, the rows of on
 splitting (`grid_pass`); the position safety pass projects them the same way, and the warm start matches last
 step's impulses by partner (a slot's impulse is carried over only if the same pair is listed again).
 `Impulses.partners` [n, K] and `Impulses.overflow` (the candidates that did not fit) travel with the impulses.
-The time-of-impact correction applies to grid pairs as to listed ones.
+The time-of-impact correction applies to grid pairs as to listed ones. After the solve, `common.grid_step`
+checks that no unlisted pair touched on the paths the solve gave (`path_search`, `unsolved`), solving the
+step again with those pairs if one did.
+
+Start overlaps (a particle inside an obstacle or another particle) are pushed out at no more than
+`PUSH_OUT_SPEED`, along `direction` (the last axis where the centres coincide). Gaps within rounding of 0
+(`_gap`) are classified the same way by every program that computes them, so that forward and reverse mode
+agree. `ContactSystem.from_model` makes every leaf NaN when one holds a value `Model` refuses.
 """
 from __future__ import annotations
 
@@ -65,11 +72,34 @@ class ContactSystem:
         if model.contact is None:
             return None
         t = model.topology
-        a = lambda v: jnp.asarray(v, dtype)      # noqa: E731
-        r = L.per_particle_in(t, a(model.radius))
-        normal = L.safe_norm(a(model.plane_normal), axis=-1)[1]     # unit, also for fitted or traced normals
-        return cls(r, r.reshape(t.n), a(model.friction), a(model.restitution), a(model.restitution_threshold),
-                   normal, a(model.plane_offset), a(model.sphere_centre), a(model.sphere_radius), model.contact)
+        leaves = {k: jnp.asarray(getattr(model, k), dtype) for k in _LEAVES}
+        bad = _invalid(leaves)
+        # A value that `Model` refuses when it is concrete (NaN, negative friction, restitution outside [0, 1],
+        # ...) can still arrive traced: an optimiser step with a NaN gradient inside jit. Every solver then
+        # computes with NaN leaves, so that the rollout's outputs are NaN and the bad value is seen (a NaN
+        # friction alone only made PGS's friction clamp `|lam_t| >= NaN` false: a finite, frictionless run).
+        leaves = {k: jnp.where(bad, jnp.nan, v) for k, v in leaves.items()}
+        r = L.per_particle_in(t, leaves["radius"])
+        normal = L.safe_norm(leaves["plane_normal"], axis=-1)[1]     # unit, also for fitted or traced normals
+        return cls(r, r.reshape(t.n), leaves["friction"], leaves["restitution"], leaves["restitution_threshold"],
+                   normal, leaves["plane_offset"], leaves["sphere_centre"], leaves["sphere_radius"], model.contact)
+
+
+_LEAVES = ("radius", "friction", "restitution", "restitution_threshold", "plane_normal", "plane_offset",
+           "sphere_centre", "sphere_radius")
+_NONNEGATIVE = ("radius", "friction", "restitution", "restitution_threshold", "sphere_radius")
+
+
+def _invalid(leaves: dict):
+    """Whether any contact leaf holds a value `Model` refuses (jaxcon.core.model's contact checks): a
+    non-finite value, a negative radius, friction, restitution, threshold or sphere radius, or restitution
+    above 1. A scalar bool (traced under jit)."""
+    bad = jnp.zeros((), bool)
+    for k, v in leaves.items():
+        bad = bad | ~jnp.all(jnp.isfinite(v))
+        if k in _NONNEGATIVE:
+            bad = bad | jnp.any(v < 0)
+    return bad | jnp.any(leaves["restitution"] > 1)
 
 
 class Impulses(NamedTuple):
@@ -89,7 +119,8 @@ class Rows(NamedTuple):
     """Contact rows of one (sub)step: normal n, target velocity `target`, effective mass k, inverse-mass sum
     winv, time of impact `toi` (0 unless an impact happens within the step), gap, and `target_c`: the target
     without restitution (the compression phase; None for solvers that do not split the solve). Grid pair rows
-    also carry their particles i, j [n, K] (internal indices, j = -1 for an empty slot); None otherwise."""
+    also carry their particles i, j [n, K] (internal indices, j = -1 for an empty slot); None otherwise. `near`:
+    touching or within rounding of it (an impact of such a contact is one of a touching contact, `_gap`)."""
 
     n: Array
     target: Array
@@ -100,6 +131,31 @@ class Rows(NamedTuple):
     target_c: Array = None
     i: Array = None
     j: Array = None
+    near: Array = None
+
+
+def direction(d):
+    """(length [...], unit direction [dim, ...]) of contact vectors d [dim, ...] (from the first body to the
+    second) as `layout.safe_norm`, except that where d is 0 (coincident centres: a particle started at a
+    sphere's centre, or on another particle) the direction is +e_last, the last axis (y in 2-D, z in 3-D: up
+    for the default gravity), so that the overlap is still pushed out: the second body upwards. Its derivative
+    there is 0."""
+    dist, n = L.safe_norm(d, axis=0)
+    up = jnp.zeros((d.shape[0],) + (1,) * (d.ndim - 1), d.dtype).at[-1].set(1)
+    return dist, jnp.where(dist > 0, n, up)
+
+
+def overlap_normal(d0, d, R):
+    """(unit normal, gap) of contacts at distance vectors d [dim, ...] (touching at |d| = R) for a position
+    level solver (XPBD) whose contacts also had d0 at the start of the substep: the normal of d
+    (`direction`), except for a contact that already overlapped at the start (a particle started inside a
+    sphere or another particle), which keeps the start's normal and the gap along it, n0 . d - R, so that it
+    leaves by the nearest surface of where it was (upwards from the exact centre), not by the side that
+    gravity's prediction happened to move it towards."""
+    dist0, n0 = direction(d0)
+    dist, n = direction(d)
+    deep = dist0 - R < -_tolerance(_magnitude(d0) + R)
+    return jnp.where(deep, n0, n), jnp.where(deep, jnp.sum(n0 * d, 0), dist) - R
 
 
 # ---- layout --------------------------------------------------------------------------------------------------
@@ -204,31 +260,54 @@ def neighbours(cs: ContactSystem, x, v, h):
 
     The particles are hashed into cells of side 2 (1 + GRID_SKIN) max(r) + 2 h max|v - mean(v)| (so every
     candidate of a particle lies in its own cell or one of the 3^dim - 1 around it), sorted by bucket, and each
-    particle scans up to GRID_SCAN * K entries of each of those cells' buckets. A scanned j is kept if it is in
-    that cell, j's user index is above i's (each pair once), no rod or rope joins them, and |x_j - x_i| is below
-    the candidate distance (GRID_SKIN); the first K are kept. The overflow counts the candidates that found no
-    slot plus the bucket entries beyond those scanned (those may or may not have been candidates: it is an upper
-    bound, and 0 means no contact was missed). No gradient flows through the search (it only picks indices)."""
-    ct = cs.ct
-    K, table = ct.grid_k, ct.grid_table
-    scan = GRID_SCAN * K
+    particle scans up to GRID_SCAN * K entries of each of those cells' buckets (`_scan`). A scanned j is kept
+    if it is in that cell, j's user index is above i's (each pair once), no rod or rope joins them, and
+    |x_j - x_i| is below the candidate distance (1 + GRID_SKIN)(r_i + r_j) + h |v_j - v_i|; the first K are
+    kept (`_select`). The overflow counts the candidates that found no slot plus the bucket entries beyond
+    those scanned (those may or may not have been candidates: it is an upper bound, and 0 means no candidate
+    was missed). No gradient flows through the search (it only picks indices). `grid_search` also returns
+    the scan, and `common.grid_step` checks that the pairs of a step's actual paths were found."""
+    return grid_search(cs, x, v, h)[0]
+
+
+def _spread(vf):
+    """max |v - mean(v)| of velocities vf [dim, n]: |v_j - v_i| <= 2 spread (relative to the mean velocity, a
+    pile falling as one keeps small cells)."""
+    d = vf - jnp.mean(vf, axis=1, keepdims=True)
+    return jnp.sqrt(jnp.max(jnp.sum(d * d, 0)))
+
+
+def grid_search(cs: ContactSystem, x, v, h):
+    """`neighbours`, and its scan (`_scan`'s scanned entries j [n, M], bucket entries left unscanned [n], and
+    the cell side), which `path_search` can pick from again."""
     dim = x.shape[0]
     xf = lax.stop_gradient(x.reshape(dim, -1))
     vf = lax.stop_gradient(v.reshape(dim, -1))
     r = lax.stop_gradient(cs.radius_flat)
-    n = xf.shape[1]
-    # |v_j - v_i| <= 2 max |v - u| for any u: relative to the mean velocity, a pile falling as one keeps small cells
-    spread = vf - jnp.mean(vf, axis=1, keepdims=True)
-    reach = 2 * (1 + GRID_SKIN) * jnp.max(r) + 2 * h * jnp.sqrt(jnp.max(jnp.sum(spread * spread, 0)))
+    reach = 2 * (1 + GRID_SKIN) * jnp.max(r) + 2 * h * _spread(vf)
+    scan = _scan(cs.ct, xf, reach)
+
+    def close(jc):              # within the candidate distance (1 + GRID_SKIN)(r_i + r_j) + h |v_j - v_i|
+        d, dv = xf[:, jc] - xf[:, :, None], vf[:, jc] - vf[:, :, None]
+        cut = (1 + GRID_SKIN) * (r[:, None] + r[jc]) + h * jnp.sqrt(jnp.sum(dv * dv, 0))
+        return jnp.sqrt(jnp.sum(d * d, 0)) < cut
+
+    return _select(cs, scan, close), scan
+
+
+def _scan(ct: ContactTopology, xf, reach):
+    """Hash particles xf [dim, n] into cells of side `reach` and list, per particle, up to GRID_SCAN * K
+    entries of its own and each surrounding cell's bucket: (j [n, 3^dim GRID_SCAN K], -1 where none, the
+    bucket entries beyond those scanned [n], reach)."""
+    K, table = ct.grid_k, ct.grid_table
+    scan = GRID_SCAN * K
+    dim, n = xf.shape
     cell = jnp.maximum(reach, jnp.finfo(xf.dtype).tiny) * (1 + 1e-6)
     big = 2 ** 28                                                  # cell coordinates stay far from int32's end
     c = jnp.clip(jnp.floor(xf / cell), -big, big).astype(jnp.int32)
     key = _cell_hash(c, table)
     order = jnp.argsort(key)
     skey = key[order]
-    uid = jnp.asarray(ct.grid_uid.array)
-    excl = jnp.asarray(ct.grid_exclude.array)
-    me = jnp.arange(n)
     cands, missed = [], jnp.zeros((n,), jnp.int32)
     for off in itertools.product((-1, 0, 1), repeat=dim):
         qc = c + jnp.asarray(off, jnp.int32)[:, None]
@@ -240,20 +319,68 @@ def neighbours(cs: ContactSystem, x, v, h):
         ok = (idx < hi[:, None]) & jnp.all(c[:, j] == qc[:, :, None], axis=0)
         cands.append(jnp.where(ok, j, -1))
         missed = missed + jnp.maximum(hi - lo - scan, 0).astype(jnp.int32)
-    j = jnp.concatenate(cands, 1)                                   # [n, 3^dim scan]
+    return jnp.concatenate(cands, 1), missed, reach
+
+
+def _select(cs: ContactSystem, scan, close):
+    """The first K scanned entries (`_scan`) j of each particle i with a higher user index, no rod or rope
+    joining them, and `close(jc)` [n, M] (jc the entries, -1 as 0): (partners [n, K], overflow: the entries
+    kept beyond K plus the bucket entries left unscanned)."""
+    ct = cs.ct
+    K, (j, missed, _) = ct.grid_k, scan
+    n = j.shape[0]
+    uid = jnp.asarray(ct.grid_uid.array)
+    excl = jnp.asarray(ct.grid_exclude.array)
     jc = jnp.maximum(j, 0)
-    d = xf[:, jc] - xf[:, :, None]
-    dist = jnp.sqrt(jnp.sum(d * d, 0))
-    dv = vf[:, jc] - vf[:, :, None]
-    cut = (1 + GRID_SKIN) * (r[:, None] + r[jc]) + h * jnp.sqrt(jnp.sum(dv * dv, 0))
-    keep = (j >= 0) & (uid[jc] > uid[:, None]) & (dist < cut)
+    keep = (j >= 0) & (uid[jc] > uid[:, None]) & close(jc)
     keep = keep & ~jnp.any(jc[:, :, None] == excl[:, None, :], axis=-1)
     rank = jnp.cumsum(keep, axis=1) - 1
     count = jnp.sum(keep, axis=1)
     slot = jnp.where(keep & (rank < K), rank, K)
-    out = jnp.full((n, K + 1), -1, jnp.int32).at[me[:, None], slot].set(j.astype(jnp.int32))
+    out = jnp.full((n, K + 1), -1, jnp.int32).at[jnp.arange(n)[:, None], slot].set(j.astype(jnp.int32))
     overflow = jnp.sum(jnp.maximum(count - K, 0) + missed).astype(jnp.int32)
     return out[:, :K], overflow
+
+
+def path_search(cs: ContactSystem, x, x_end, h, scan):
+    """The pairs that touch on the way from x to x_end [dim, *view] (each particle on the straight line between
+    them: the nearest the pair comes is below r_i + r_j, less rounding), as `neighbours` lists them
+    (partners [n, K], overflow). The earlier search's `scan` is used again where its cells are wide enough
+    for these displacements, else the particles are scanned again (`lax.cond`)."""
+    dim = x.shape[0]
+    xf, xe = (lax.stop_gradient(a.reshape(dim, -1)) for a in (x, x_end))
+    r = lax.stop_gradient(cs.radius_flat)
+    reach = 2 * (1 + GRID_SKIN) * jnp.max(r) + 2 * _spread(xe - xf)
+    scan = lax.cond(reach <= scan[2], lambda _: scan, lambda _: _scan(cs.ct, xf, reach), None)
+
+    def close(jc):
+        d0 = xf[:, jc] - xf[:, :, None]
+        e = (xe[:, jc] - xe[:, :, None]) - d0
+        s = jnp.clip(-jnp.sum(d0 * e, 0) * L.safe_reciprocal(jnp.sum(e * e, 0)), 0, 1)
+        closest = jnp.sqrt(jnp.sum((d0 + s * e) ** 2, 0))
+        R = r[:, None] + r[jc]
+        return closest < R - _tolerance(_magnitude(xf[:, jc]) + _magnitude(xf)[:, None] + R)
+
+    return _select(cs, scan, close)
+
+
+def merge_partners(a, b):
+    """The partners [n, K] of `a` followed by those of `b` that `a` lacks, the first K of each row (a pair
+    sits in the row of its lower-numbered particle in both): (partners, how many did not fit, int32)."""
+    n, K = a.shape
+    both = jnp.concatenate([a, jnp.where(jnp.any(b[:, :, None] == a[:, None, :], -1), -1, b)], 1)
+    keep = both >= 0
+    rank = jnp.cumsum(keep, axis=1) - 1
+    slot = jnp.where(keep & (rank < K), rank, K)
+    out = jnp.full((n, K + 1), -1, jnp.int32).at[jnp.arange(n)[:, None], slot].set(both)
+    return out[:, :K], jnp.sum(jnp.maximum(jnp.sum(keep, 1) - K, 0)).astype(jnp.int32)
+
+
+def unsolved(touching, solved):
+    """How many pairs of `touching` [n, K] (`path_search`) are not in `solved` [n, K]: int32 scalar (a pair sits
+    in the row of its lower-numbered particle in both)."""
+    new = (touching >= 0) & ~jnp.any(touching[:, :, None] == solved[:, None, :], -1)
+    return jnp.sum(new).astype(jnp.int32)
 
 
 def pair_index(ct: ContactTopology, pairs: Rows):
@@ -265,9 +392,20 @@ def pair_index(ct: ContactTopology, pairs: Rows):
 
 
 # ---- rows ------------------------------------------------------------------------------------------------------
+#: Gaps within ROUNDING * eps * (the size of the coordinates they come from) of 0 count as touching (`_gap`).
+ROUNDING = 64
+
+#: The fastest a touching contact's Baumgarte term pushes an overlap out (m/s), Box2D's
+#: `contactPushMaxVelocity` (b2_contactPushMaxVelocity, 3 m/s). Without it a particle that starts deep inside
+#: an obstacle leaves at beta C / h: 0.2 * 0.8 m at h = 1/240 s is 38 m/s, and the position pass then removes
+#: the overlap, so nothing takes that velocity back (a particle started 0.3 R off a 1 m sphere's centre
+#: reached z = 58 m after 2 s with PGS(10, substeps=4)).
+PUSH_OUT_SPEED = 3.0
+
 def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h):
-    """Target velocity of contacts with gap C, normal velocity vn0 at the start of the step and vn1 after the
-    external forces, and an impact at `toi` where `impact` (module docstring).
+    """Target velocity of contacts with gap C (`_gap`: > 0 separated, <= 0 touching), normal velocity vn0 at
+    the start of the step and vn1 after the external forces, and an impact at `toi` where `impact` (module
+    docstring; a contact within rounding of touching, C = 0, may be an impact at toi ~ 0).
 
     Within an impact step the approach velocity is taken to change linearly, vn0 + (vn1 - vn0) t / h, so the
     impact speed u depends on the time of impact, and the forces keep acting for the rest of the step after the
@@ -275,36 +413,60 @@ def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h):
     continuous where the impact moves from one step to the next (at toi = h and toi = 0 both sides give the
     same state), and gives the time-of-impact dependence of u its right derivative (du/dC = a / |vn1|).
     A separated contact that is not an impact gets the speculative target -C_spec / h, C_spec its gap along
-    the row's normal. Returns (target, target without restitution)."""
+    the row's normal. A touching one pushes its overlap out at -beta C / h, at most `PUSH_OUT_SPEED`.
+    Returns (target, target without restitution)."""
     dv = vn1 - vn0
     u = -(vn0 + dv * toi / h)
     bounce = jnp.where(u > cs.threshold, cs.restitution * u, 0)
     rest = dv * (h - toi) / h
+    push = jnp.minimum(-beta * C / h, PUSH_OUT_SPEED)
 
     def target(after):
-        return jnp.where(C > 0, jnp.where(impact, after, -C_spec / h), jnp.maximum(after, -beta * C / h))
+        return jnp.where(impact, after, jnp.where(C > 0, -C_spec / h, jnp.maximum(after, push)))
 
     return target(jnp.maximum(bounce + rest, 0)), target(jnp.maximum(rest, 0))
 
 
-def _swept(d, u, R, h):
+def _tolerance(scale):
+    """Rounding tolerance of a gap computed from numbers of size `scale`: `ROUNDING` eps scale (`_gap`)."""
+    return ROUNDING * jnp.finfo(scale.dtype).eps * scale
+
+
+def _gap(C, tol):
+    """The gap a row uses: C + tol (`_tolerance`), so that a contact touches (gap <= 0) only once it overlaps
+    by more than rounding.
+
+    The position pass leaves the contacts it corrects at C = 0 up to rounding, so that the next step's C is
+    +-1e-17 (float64). Whether such a contact is separated or touching (warm-started, its Baumgarte term
+    active), and whether an approaching one is an impact at toi = C / |vn| (whose derivative, 1 / |vn|, the
+    touching branch does not have) would be decided by the rounding of the program that computes it, and the
+    forward-mode and reverse-mode programs round differently: the drape's jax.grad was 2% off jax.jacfwd.
+    Within the tolerance a contact is separated whatever the sign of its rounding: speculative, or an impact
+    at toi ~ tol / |vn| if it approaches (`_swept`)."""
+    return C + tol
+
+
+def _swept(d, u, R, h, tol):
     """Contact of two spheres (or a sphere and a point) whose centres are `d` apart ([dim, ...], from the first
     to the second) and move apart at the constant relative velocity `u` over the step, touching at distance R.
 
-    Returns (n, C, C_n, hit, impact, toi): C = |d| - R; `hit` where the straight-line paths come within R
-    inside the step, at time toi (the smaller root of |d + t u| = R, in a cancellation-free form); n the unit
-    normal at the time of impact where `hit`, else at the start, and C_n = n . d - R the gap along it.
+    Returns (n, C, C_n, hit, impact, toi): C = |d| - R; `hit` where the straight-line paths come within R - tol
+    inside the step (`_gap`'s tolerance: a contact left at C = 0 +- rounding by the position pass that
+    approaches is an impact at toi ~ tol / speed, whatever the sign of its rounding), at time toi (the smaller
+    root of |d + t u| = R - tol, in a cancellation-free form); n the unit normal at the time of impact where
+    `hit`, else at the start (`direction`: the last axis where d = 0), and C_n = n . d - R the gap along it.
     `impact` starts equal to `hit` (`_first_impacts` may clear it). Using the normal at impact, not a
     linearised gap along the start normal, is what catches glancing impacts of balls that move several
     diameters per step."""
-    dist, n0 = L.safe_norm(d, axis=0)
+    dist, n0 = direction(d)
     C = dist - R
+    Ci, Ri = _gap(C, tol), R - tol
     uu = jnp.sum(u * u, 0)
     du = jnp.sum(d * u, 0)
-    disc = du * du - uu * (C * (dist + R))
-    hit = (C > 0) & (du < 0) & (disc > 0)
+    disc = du * du - uu * (Ci * (dist + Ri))
+    hit = (Ci > 0) & (du < 0) & (disc > 0)
     root = jnp.sqrt(jnp.where(hit, disc, 1))
-    t = C * (dist + R) / jnp.where(hit, root - du, 1)
+    t = Ci * (dist + Ri) / jnp.where(hit, root - du, 1)
     hit = hit & (t < h)
     toi = jnp.where(hit, t, 0)
     _, n_hit = L.safe_norm(d + toi * u, axis=0)
@@ -312,21 +474,31 @@ def _swept(d, u, R, h):
     return n, C, jnp.sum(n * d, 0) - R, hit, hit, toi
 
 
+def _magnitude(a):
+    """Sum of |a| over the leading (dim) axis: the size of the coordinates a gap is computed from."""
+    return jnp.sum(jnp.abs(a), 0)
+
+
 def _obstacle_geometry(cs: ContactSystem, x, v, h):
-    """(n [Q, dim, *view], C, impact, toi [Q, *view]) of every particle against every plane, then every
-    sphere, for particles moving at `v` over the step."""
+    """(n [Q, dim, *view], C, C_n, hit, impact, toi, tol [Q, *view]) of every particle against every plane,
+    then every sphere, for particles moving at `v` over the step; tol is `_gap`'s rounding tolerance."""
     ct, dim, nview = cs.ct, x.shape[0], x.ndim - 1
     out = []
     r = cs.radius[0]
+    size = _magnitude(x) + r
     for p in range(ct.n_planes):
         nrm = jnp.broadcast_to(cs.plane_normal[p].reshape((dim,) + (1,) * nview), x.shape)
         C = jnp.sum(nrm * x, 0) - cs.plane_offset[p] - r
+        tol = _tolerance(size + jnp.abs(cs.plane_offset[p]))
         vn = jnp.sum(nrm * v, 0)
-        impact = (C > 0) & (C + h * vn < 0)
-        out.append((nrm, C, C, impact, impact, jnp.where(impact, C / jnp.where(impact, -vn, 1), 0)))
+        Ci = _gap(C, tol)                  # as in `_swept`: the impact is when the gap reaches -tol
+        impact = (Ci > 0) & (Ci + h * vn < 0)
+        out.append((nrm, C, C, impact, impact, jnp.where(impact, Ci / jnp.where(impact, -vn, 1), 0), tol))
     for s in range(ct.n_spheres):
-        d = x - cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
-        out.append(_swept(d, v, cs.sphere_radius[s] + r, h))
+        c = cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
+        R = cs.sphere_radius[s] + r
+        tol = _tolerance(size + _magnitude(c) + R)
+        out.append(_swept(x - c, v, R, h, tol) + (tol,))
     return tuple(jnp.stack(a) for a in zip(*out))
 
 
@@ -334,21 +506,27 @@ def _first_impacts(ct, obs, pairs, n_particles, index=None):
     """Keep an impact only if it is the first, within the step, of each particle it involves: a ball that hits
     another cannot also hit, on its unobstructed path, the ball behind it or the cushion beyond. The later
     ones stay speculative contacts along their normal at impact (no bounce, no time of impact). `obs`/`pairs`:
-    (n, C, C_n, hit, impact, toi) or None. Returns them with `impact` updated."""
+    (n, C, C_n, hit, impact, toi, tol) or None. Returns them with `impact` updated. An impact of a contact that
+    already touches (C <= tol, `_swept`) is a touching contact, given its time of impact only for its
+    derivative: it is always kept, and it hides no other impact."""
     inf = jnp.inf
+
+    def real(g):
+        return g[3] & (g[1] > g[6])
+
     ref = (obs if obs is not None else pairs)[5]
     first = jnp.full((n_particles,), inf, ref.dtype)
     if obs is not None:
-        first = jnp.min(jnp.where(obs[3], obs[5], inf).reshape(obs[5].shape[0], -1), axis=0)
+        first = jnp.min(jnp.where(real(obs), obs[5], inf).reshape(obs[5].shape[0], -1), axis=0)
     if pairs is not None:
         ia, ja = (ct.i.array.reshape(-1), ct.j.array.reshape(-1)) if index is None else index
-        t = jnp.where(pairs[3], pairs[5], inf).reshape(-1)
+        t = jnp.where(real(pairs), pairs[5], inf).reshape(-1)
         first = first.at[ia].min(t).at[ja].min(t)
         keep = ((t <= first[ia]) & (t <= first[ja])).reshape(pairs[3].shape)
-        pairs = pairs[:4] + (pairs[3] & keep, pairs[5])
+        pairs = pairs[:4] + (pairs[3] & (keep | ~real(pairs)),) + pairs[5:]
     if obs is not None:
         keep = obs[5] <= first.reshape((1,) + obs[5].shape[1:])
-        obs = obs[:4] + (obs[3] & keep, obs[5])
+        obs = obs[:4] + (obs[3] & (keep | ~real(obs)),) + obs[5:]
     return obs, pairs
 
 
@@ -369,16 +547,19 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None):
         valid = partners >= 0
         index = (ia.reshape(-1), ja.reshape(-1))
     if valid is not None:
-        pairs = _swept(xf[:, ja] - xf[:, ia], vf[:, ja] - vf[:, ia], cs.radius_flat[ia] + cs.radius_flat[ja], h)
+        xi, xj, R = xf[:, ia], xf[:, ja], cs.radius_flat[ia] + cs.radius_flat[ja]
+        tol = _tolerance(_magnitude(xi) + _magnitude(xj) + R)
+        pairs = _swept(xj - xi, vf[:, ja] - vf[:, ia], R, h, tol)
         live = jnp.asarray(valid)          # a padding or empty slot is no impact (it would hide a real one)
-        pairs = pairs[:3] + (pairs[3] & live, pairs[4] & live, pairs[5])
+        pairs = pairs[:3] + (pairs[3] & live, pairs[4] & live, pairs[5], tol)
     obs, pairs = _first_impacts(ct, obs, pairs, xf.shape[1], index)
 
     def finish(geometry, vn0, vn1, winv, k):
-        n, C, C_n, _, impact, toi = geometry
+        n, C, C_n, _, impact, toi, tol = geometry
         toi = jnp.where(impact, toi, 0)
-        target, target_c = _targets(C, C_n, vn0, vn1, impact, toi, cs, beta, h)
-        return Rows(n, target, k, winv, toi, C, target_c)
+        gap = _gap(C, tol)
+        target, target_c = _targets(gap, C_n, vn0, vn1, impact, toi, cs, beta, h)
+        return Rows(n, target, k, winv, toi, gap, target_c, near=C <= tol)
 
     if obs is not None:
         n = obs[0]
@@ -562,10 +743,19 @@ def restitution_scale(w, v_free, v_c, v_n, bounce):
     e = jnp.maximum(jnp.sum(m * v_free * v_free), kc)
     e = e * (1 + 16 * jnp.finfo(e.dtype).eps)
     within = ~bounce | (kc + 2 * b + c <= e)
-    slack = jnp.maximum(e - kc, 0)
-    root = jnp.sqrt(jnp.where(within, 1, b * b + c * slack))
+    # Where `within`, the root below is not used, but reverse mode still multiplies its (zero) cotangent by its
+    # partial derivatives: with the phases' velocities a rounding error apart, c ~ 1e-27 and d s / d c ~ 1 / c^2
+    # overflows float32, and 0 * inf is NaN (the falling chain's friction gradient). So the root only ever sees
+    # safe values there (b = 0, c = slack = 1), and its square root never sees 0.
+    b, c = jnp.where(within, 0, b), jnp.where(within, 1, c)
+    slack = jnp.where(within, 1, jnp.maximum(e - kc, 0))
+    disc = b * b + c * slack
+    root = jnp.where(disc > 0, jnp.sqrt(jnp.where(disc > 0, disc, 1)), 0)
     den = b + root                        # two cancellation-free forms of the larger root of K(s) = e
-    s = jnp.where(b >= 0, slack / jnp.where(den > 0, den, 1), (root - b) / jnp.where(c > 0, c, 1))
+    # For b < 0 the root is (|b| + root) / c, at most 1 when not `within` (K(1) > e), i.e. c >= |b| + root: the
+    # maximum changes nothing there and keeps the quotient and its derivatives bounded when c underflows.
+    s = jnp.where(b >= 0, slack / jnp.where(den > 0, den, 1),
+                  (root - b) / jnp.where(b < 0, jnp.maximum(c, root - b), 1))
     return jnp.where(within, 1, jnp.clip(s, 0, 1))
 
 
@@ -601,7 +791,7 @@ def impact_times(cs: ContactSystem, obs: Rows, pairs: Rows, imp: Impulses, shape
     toi = jnp.where(push, pairs.toi.reshape(-1), 0)
     flat = tau.reshape(-1)
     flat = flat.at[ia].max(toi).at[ja].max(toi)
-    touching = push & (pairs.toi.reshape(-1) == 0)
+    touching = push & ((pairs.toi == 0) | pairs.near).reshape(-1)       # not an impact of separated balls
 
     def carry(_, t):
         across = jnp.where(touching, jnp.maximum(t[ia], t[ja]), 0)
@@ -640,7 +830,7 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
             x = x + nrm * (jnp.maximum(-C, 0) * (k > 0))
         for q in range(ct.n_spheres):
             d = x - cs.sphere_centre[q].reshape((dim,) + (1,) * (x.ndim - 1))
-            dist, n = L.safe_norm(d, axis=0)
+            dist, n = direction(d)
             C = dist - cs.sphere_radius[q] - r
             x = x + n * (jnp.maximum(-C, 0) * (k > 0))
         return x
@@ -652,7 +842,7 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
 
         def one_round(q, xf):
             i, j = ia[q], ja[q]
-            dist, n = L.safe_norm(xf[:, j] - xf[:, i], axis=0)
+            dist, n = direction(xf[:, j] - xf[:, i])
             winv = wf[i] + wf[j]
             push = jnp.maximum(rf[i] + rf[j] - dist, 0) * L.safe_reciprocal(winv) * valid[q]
             return _pair_apply(ct, xf, q, wf[i], wf[j], n * push)
@@ -665,7 +855,7 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
 
         def one_slot(s, xf):                      # slot by slot, as grid_pass
             j = jnp.maximum(pairs.j[:, s], 0)
-            dist, n = L.safe_norm(xf[:, j] - xf, axis=0)
+            dist, n = direction(xf[:, j] - xf)
             over = jnp.maximum(rf + rf[j] - dist, 0) * (pairs.k[:, s] > 0)
             hit = (over > 0).astype(xf.dtype)
             c = jnp.zeros_like(wf).at[me].add(hit).at[j].add(hit)

@@ -32,24 +32,29 @@ from jaxcon.solvers import contact
 from jaxcon.solvers.contact import ContactSystem, Impulses, Rows
 
 
-def obstacle_gap(cs: ContactSystem, q: int, p):
-    """(unit normal [dim, *view], gap [*view]) of every particle at `p` against obstacle q (planes first)."""
+def obstacle_gap(cs: ContactSystem, q: int, p, x=None):
+    """(unit normal [dim, *view], gap [*view]) of every particle at `p` against obstacle q (planes first).
+    With the substep's start positions `x`, a particle that started inside a sphere keeps the normal it had
+    there (`contact.overlap_normal`)."""
     dim, nview = p.shape[0], p.ndim - 1
     r = cs.radius[0]
     if q < cs.ct.n_planes:
         nrm = jnp.broadcast_to(cs.plane_normal[q].reshape((dim,) + (1,) * nview), p.shape)
         return nrm, jnp.sum(nrm * p, 0) - cs.plane_offset[q] - r
     s = q - cs.ct.n_planes
-    dist, nrm = L.safe_norm(p - cs.sphere_centre[s].reshape((dim,) + (1,) * nview), axis=0)
+    c = cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
+    if x is not None:
+        return contact.overlap_normal(x - c, p - c, cs.sphere_radius[s] + r)
+    dist, nrm = contact.direction(p - c)
     return nrm, dist - cs.sphere_radius[s] - r
 
 
-def _pair_gap(cs: ContactSystem, pf, r):
-    """(unit normal [dim, S] from i to j, gap [S]) of pair round r at flat positions pf [dim, n]."""
+def _pair_gap(cs: ContactSystem, pf, r, xf):
+    """(unit normal [dim, S] from i to j, gap [S]) of pair round r at flat positions pf [dim, n], the substep
+    having started at xf (`contact.overlap_normal`)."""
     ct = cs.ct
     i, j = jnp.asarray(ct.i.array)[r], jnp.asarray(ct.j.array)[r]
-    dist, nrm = L.safe_norm(pf[:, j] - pf[:, i], axis=0)
-    return nrm, dist - cs.radius_flat[i] - cs.radius_flat[j]
+    return contact.overlap_normal(xf[:, j] - xf[:, i], pf[:, j] - pf[:, i], cs.radius_flat[i] + cs.radius_flat[j])
 
 
 def _position_row(disp, n, C, k, mu, ln, lt):
@@ -77,7 +82,7 @@ def project(cs: ContactSystem, w, x, p, imp: Impulses):
         on, ot = list(on), list(ot)
         k = L.safe_reciprocal(w[0])
         for q in range(ct.n_obstacles):
-            n, C = obstacle_gap(cs, q, p)
+            n, C = obstacle_gap(cs, q, p, x)
             P, on[q], ot[q] = _position_row(p - x, n, C, k, mu, on[q], ot[q])
             p = p + w * P
         on, ot = jnp.stack(on), jnp.stack(ot)
@@ -91,7 +96,7 @@ def project(cs: ContactSystem, w, x, p, imp: Impulses):
         def one_round(r, carry):
             pf, pn, pt = carry
             i, j = ia[r], ja[r]
-            n, C = _pair_gap(cs, pf, r)
+            n, C = _pair_gap(cs, pf, r, xf)
             disp = (pf[:, j] - xf[:, j]) - (pf[:, i] - xf[:, i])
             k = L.safe_reciprocal(wf[i] + wf[j]) * valid[r]
             P, ln, lt = _position_row(disp, n, C, k, mu, pn[r], pt[:, r])
@@ -124,7 +129,7 @@ def velocity_rows(cs: ContactSystem, w, p, v_before, imp: Impulses):
     if ct.n_pairs:
         ia, ja = ct.i.array, ct.j.array
         pf, vf, wf = p.reshape(dim, -1), v_before.reshape(dim, -1), w.reshape(-1)
-        dist, n = L.safe_norm(pf[:, ja] - pf[:, ia], axis=0)
+        dist, n = contact.direction(pf[:, ja] - pf[:, ia])
         C = dist - cs.radius_flat[ia] - cs.radius_flat[ja]
         winv = wf[ia] + wf[ja]
         k = L.safe_reciprocal(winv) * jnp.asarray(ct.valid.array, winv.dtype) * (imp.pair_n > 0).astype(C.dtype)

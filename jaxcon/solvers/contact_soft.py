@@ -28,12 +28,13 @@ from jaxcon.solvers.contact import Impulses, Rows, finish_row, sweep
 
 def solve_rows(rows: Rows, soft, push_velocity):
     """Solve-stage rows and their softness: (rows, (mass_scale, impulse_scale)), each of the rows' shape.
-    Touching or overlapping rows (gap <= 0) get the soft push-out target min(-bias_rate C, push_velocity) and
-    the soft coefficients `soft` = (bias_rate, mass_scale, impulse_scale); separated rows stay rigid."""
+    Touching or overlapping rows (gap <= 0, or within rounding of touching and no impact: `contact._gap`) get
+    the soft push-out target min(-bias_rate C, push_velocity) and the soft coefficients `soft` = (bias_rate,
+    mass_scale, impulse_scale); separated rows, and impacts, stay rigid."""
     if rows is None:
         return None, None
     bias_rate, mass_scale, impulse_scale = soft
-    touching = rows.gap <= 0
+    touching = (rows.gap <= 0) | (rows.near & (rows.toi == 0))
     target = jnp.where(touching, jnp.minimum(-bias_rate * rows.gap, push_velocity), rows.target)
     one = jnp.ones_like(rows.gap)
     return rows._replace(target=target), (jnp.where(touching, mass_scale * one, one),

@@ -20,6 +20,7 @@ from jaxcon.solvers.common import (
     contact_begin,
     contact_end,
     frames,
+    grid_step,
     restitution_phases,
     split_position_pass,
     velocity_bias,
@@ -128,17 +129,20 @@ class Jacobi(Solver):
 
         return substepped(substep, self.substeps, x, v, lam, dt)
 
-    def _substep_contacts(self, sys, x, v, lam_ws, h):
+    def _substep_contacts(self, sys, x, v, lam_ws, h, found=None):
         """One (sub)step of a model with contacts (jaxcon.solvers.contact_jacobi): PGS's contact rows, warm start,
         time-of-impact correction and position safety pass, with rods and contacts solved in the same Jacobi
-        iterations. `relaxation=None` relaxes by mass splitting (per-particle counts of the rows that push)."""
+        iterations. `relaxation=None` relaxes by mass splitting (per-particle counts of the rows that push).
+        A grid model's step goes through `grid_step`, which calls this with its candidate pairs `found`."""
+        if sys.contact.ct.has_grid and found is None:
+            return grid_step(sys, x, v, h, functools.partial(self._substep_contacts, sys, x, v, lam_ws, h))
         topo = sys.topology
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
         relax = None if self.relaxation is None else jnp.asarray(self.relaxation, dtype)
         split = self.stabilization == "split"
         v_free, v, fr, bias, obs, pairs, lam, imp = contact_begin(sys, x, v, lam_ws, beta, h, split,
-                                                                  self.warm_start)
+                                                                  self.warm_start, found=found)
 
         def run(obs, pairs):
             return functools.partial(contact_jacobi.iteration(sys, fr, bias, obs, pairs, relax), 0)

@@ -192,6 +192,7 @@ class Penalty(Solver):
             return substepped(substep, self.substeps, x, v, lam, dt)
 
         def with_contacts(x, v, ws, h):
+            x = _start_overlaps(sys.contact, sys.w, x, v, ws[1], h, k, c)
             if topo.blocks:
                 x1, v1, imp_b = substep(x, v, ws[0], h)
             else:                    # contacts only: no springs
@@ -262,6 +263,47 @@ def _penalty_row(vrel0, vrel, n, C, m, k, c, two_zeta, mu, slip, h):
     return p_n, -vt * jnp.minimum(mu * p_n / jnp.maximum(speed, slip), m)
 
 
+def _excess(C, vn, m, prev_n, h, k, c, two_zeta, tol):
+    """The part of a contact's overlap -C that no spring stored (`_start_overlaps`): 0 where the contact pushed
+    in the previous substep (prev_n > 0) or has no effective mass m; else what exceeds twice the deepest a
+    contact can be in its first substep, h |vn| (it was apart one substep ago), or when its force has just
+    vanished with the overlap not yet gone, (c + 2 zeta sqrt(k m)) |vn| / k."""
+    root = jnp.where(m > 0, jnp.sqrt(jnp.where(m > 0, k * m, 1)), 0)
+    legit = 2 * (h + (c + two_zeta * root) / k) * jnp.abs(vn) + tol
+    return jnp.where((prev_n <= 0) & (m > 0), jnp.maximum(-C - legit, 0), 0)
+
+
+def _start_overlaps(cs, w, x, v, prev, h, k, c):
+    """Positions x [dim, *view] with every start overlap moved out at position level, along its contact's
+    normal (`contact.direction`: upwards from a sphere's exact centre or between coincident particles), with no
+    change of velocity. A start overlap is an overlap that no spring can have stored: the contact did not push
+    in the previous substep (the impulses `prev`), yet it is deeper than one substep's approach (`_excess`): a
+    particle that starts inside an obstacle or another particle. Its spring would store (k / 2) depth^2 and fling
+    the particle out (a 1 kg particle started 0.3 R off a 1 m sphere's centre left at 100 m/s); moved out, it
+    leaves with the velocity it had. Pairs are moved apart in inverse proportion to their masses."""
+    ct, dim = cs.ct, x.shape[0]
+    two_zeta = 2 * _restitution_damping_ratio(cs.restitution)
+    r = cs.radius[0]
+    if ct.n_obstacles:
+        m = L.safe_reciprocal(w[0])
+        size = jnp.sum(jnp.abs(x), 0) + r
+        for q in range(ct.n_obstacles):
+            n, C = contact_position.obstacle_gap(cs, q, x)
+            tol = contact._tolerance(size + jnp.sum(jnp.abs(cs.plane_normal[q] if q < ct.n_planes else
+                                                              cs.sphere_centre[q - ct.n_planes])))
+            x = x + n * _excess(C, jnp.sum(n * v, 0), m, prev.obs_n[q], h, k, c, two_zeta, tol)
+    if ct.n_pairs:
+        ia, ja = ct.i.array, ct.j.array
+        xf, vf, wf, rf = x.reshape(dim, -1), v.reshape(dim, -1), w.reshape(-1), cs.radius_flat
+        dist, n = contact.direction(xf[:, ja] - xf[:, ia])
+        m = L.safe_reciprocal(wf[ia] + wf[ja]) * jnp.asarray(ct.valid.array, x.dtype)
+        tol = contact._tolerance(jnp.sum(jnp.abs(xf[:, ia]) + jnp.abs(xf[:, ja]), 0) + rf[ia] + rf[ja])
+        vn = jnp.sum(n * (vf[:, ja] - vf[:, ia]), 0)
+        e = _excess(dist - rf[ia] - rf[ja], vn, m, prev.pair_n, h, k, c, two_zeta, tol)
+        x = x + contact._pair_total(ct, w, n * (e * m), -1.0).reshape(x.shape)
+    return x
+
+
 def _contact_impulses(topo, cs, w, x, v0, v, h, k, c, slip):
     """Penalty contact impulses of one substep (Penalty's docstring): (velocity change [dim, *view], the
     substep's contact `Impulses`). x, v0: positions and velocities at the start of the substep, v: velocities
@@ -282,7 +324,7 @@ def _contact_impulses(topo, cs, w, x, v0, v, h, k, c, slip):
     if ct.n_pairs:
         ia, ja = ct.i.array, ct.j.array
         xf, vf, v0f, wf = x.reshape(dim, -1), v.reshape(dim, -1), v0.reshape(dim, -1), w.reshape(-1)
-        dist, n = L.safe_norm(xf[:, ja] - xf[:, ia], axis=0)
+        dist, n = contact.direction(xf[:, ja] - xf[:, ia])
         C = dist - cs.radius_flat[ia] - cs.radius_flat[ja]
         m = L.safe_reciprocal(wf[ia] + wf[ja]) * jnp.asarray(ct.valid.array, x.dtype)
         pn, pt = _penalty_row(v0f[:, ja] - v0f[:, ia], vf[:, ja] - vf[:, ia], n, C, m, k, c, two_zeta, mu, slip, h)

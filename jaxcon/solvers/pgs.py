@@ -20,6 +20,7 @@ from jaxcon.solvers.common import (
     contact_begin,
     contact_end,
     frames,
+    grid_step,
     restitution_phases,
     split_position_pass,
     velocity_bias,
@@ -89,8 +90,8 @@ class PGS(Solver):
     def __post_init__(self):
         check_stabilization("PGS", self.stabilization)
         if self.implicit and self.stabilization == "split":
-            raise ValueError("PGS: `implicit=True` is not available with stabilization='split' (the pseudo-velocity "
-                             "solve has no implicit derivative here); use implicit=False")
+            raise ValueError("PGS: `implicit=True` is not available with stabilization='split' (its position "
+                             "projection has no implicit derivative here); use implicit=False")
         check_int("PGS", "iterations", self.iterations, 1)
         check_int("PGS", "substeps", self.substeps, 1)
         check_bool("PGS", "warm_start", self.warm_start)
@@ -133,17 +134,21 @@ class PGS(Solver):
             return split_position_pass(sys, x + h * v, self.iterations), v, lam
         return x + h * v, v, lam
 
-    def _substep_contacts(self, sys, x, v, lam_ws, h):
+    def _substep_contacts(self, sys, x, v, lam_ws, h, found=None):
         """The same step with contacts (jaxcon.solvers.contact): each sweep solves the constraint colours, then
-        the contacts; positions get the time-of-impact correction. Contacts push out overlap with `beta`."""
+        the contacts; positions get the time-of-impact correction. Contacts push out overlap with `beta`. A grid
+        model's step goes through `grid_step`, which calls this with its candidate pairs `found`."""
         if self.implicit:
             raise ValueError("PGS(implicit=True) does not support contacts (an inequality); use implicit=False")
         topo, cs = sys.topology, sys.contact
+        if cs.ct.has_grid and found is None:
+            return grid_step(sys, x, v, h, functools.partial(self._substep_contacts, sys, x, v, lam_ws, h))
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
         split = self.stabilization == "split"
         v_free, v, fr, bias, obs, pairs, lam, imp = contact_begin(
-            sys, x, v, lam_ws, beta, h, split, self.warm_start, self._factor(dtype), self.warm_start_gradient)
+            sys, x, v, lam_ws, beta, h, split, self.warm_start, self._factor(dtype), self.warm_start_gradient,
+            found)
         block_sweep = self._block_sweep(topo, fr, bias)
 
         def sweeps(obs, pairs):

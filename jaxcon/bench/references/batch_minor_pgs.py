@@ -19,7 +19,7 @@ def chain_pgs_rollout(x, v, lam, w, rest, gravity, beta, dt, steps, iterations):
     n, dim = x.shape[1], x.shape[2]
     m = n - 1
     X = [[x[:, p, a] for a in range(dim)] for p in range(n)]      # X[p][a]: [B]
-    V = [[v[:, p, a] for a in range(dim)] for p in range(n)]
+    V = [[v[:, p, a] * float(w[p] > 0) for a in range(dim)] for p in range(n)]   # fixed: never move (as jc.PGS)
     lam = [lam[:, k] for k in range(m)]
     # the constraint colours of a chain: even links, then odd links (what jc.PGS's colouring gives)
     order = list(range(0, m, 2)) + list(range(1, m, 2))
