@@ -17,9 +17,9 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxcon.core.checks import check_real, check_values
 from jaxcon.core.model import Model, State
-from jaxcon.core.sim import _check_call, _rollout_jit
+from jaxcon.core.sim import _check_call, _rollout_jit, check_drive
 from jaxcon.core.system import Solver
-from jaxcon.diagnostics import diagnose
+from jaxcon.diagnostics import _diagnosis, diagnose
 from jaxcon.identification import uncertainty as unc
 from jaxcon.identification.params import (  # noqa: F401  (re-exported: older imports name them here)
     STATE_PARAMS, TRANSFORMS, ParamSet, _check_transforms_and_bounds, _decode, _encode, _get, _owner, _Param,
@@ -153,6 +153,26 @@ def _observations(model, state, observed, observed_particles, sample_steps) -> _
     return _Obs(obs_b, batched, pidx, ss, int(ss[-1]))
 
 
+def _drive(model, state, ob: _Obs, forces, targets):
+    """The experiment's known inputs, checked before anything is traced (`check_drive`: shape, real, finite;
+    `targets` need fixed particles): `forces` [T, n, dim] (N) and `targets` [T, n_fixed, dim] (m), T =
+    max(sample_steps), entry k held during step k + 1 as in `rollout`; with a batch of B recordings each may
+    carry a leading axis B (one per recording) or not (shared by all). Returned as (forces, targets), each None
+    or [B, T, ...] in the state's dtype."""
+    B = ob.obs.shape[0]
+    forces, targets = check_drive("fit", model, forces, targets, ob.T, batch=B if ob.batched else None,
+                                  steps_name="max(sample_steps)", copy="recording")
+    dtype = jnp.result_type(state.x)
+
+    def per_recording(a, ndim):
+        if a is None:
+            return None
+        a = jnp.asarray(a, dtype)
+        return jnp.broadcast_to(a, (B,) + a.shape) if a.ndim == ndim else a
+
+    return per_recording(forces, 3), per_recording(targets, 3)
+
+
 def _progress(i, total, loss, t0, horizon, width=30, stream=None):
     stream = stream or sys.stderr
     frac = (i + 1) / total
@@ -267,20 +287,21 @@ def fit(model: Model, state: State, solver: Solver, dt, observed, params=None, *
         observed_particles=None, sample_steps=None, optimizer=None, learning_rate: float = 3e-3, steps: int = 300,
         window: Optional[int] = None, continuity: float = 1.0, tol: float = 1e-4, patience: int = 20,
         progress: bool = True, transforms: Optional[dict] = None, bounds: Optional[dict] = None,
-        checkpoint: Optional[int] = None, horizon="grow") -> FitResult:
+        checkpoint: Optional[int] = None, horizon="grow", forces=None, targets=None) -> FitResult:
     _check_call("fit", model, _unbatched(state), solver, dt)
     _check_options(optimizer, learning_rate, continuity, tol, patience, steps)
     ob = _observations(model, state, observed, observed_particles, sample_steps)
+    drive = _drive(model, state, ob, forces, targets)
     pset = _param_set(params, setup, model, state, solver, transforms, bounds, ob, dt)
     n_fitted = sum(int(np.sum(m)) for m in jax.tree.leaves(pset.masks()))
     stages = _schedule(horizon, ob, n_fitted)
     dtype = jnp.result_type(state.x)
     problem = _Problem(model, solver, ob, pset, jnp.asarray(dt).astype(dtype), checkpoint, _windows(window, ob.T),
-                       float(continuity))
+                       float(continuity), drive)
     state_b = _as_batched_state(state, ob.batched)
-    u0, lam_starts = problem.window_guess({"theta": pset.u0}, state_b, dt)
+    u0, lam_starts = problem.window_guess({"theta": pset.u0}, state_b, dt, drive)
     method = _optimizer(optimizer, learning_rate, problem, u0, dtype)
-    data = shard_batch((ob.obs, state_b, lam_starts), ob.obs.shape[0] if ob.batched else None)
+    data = shard_batch((ob.obs, state_b, lam_starts, drive), ob.obs.shape[0] if ob.batched else None)
     update = lambda u, o, d, h: method.core(u, o, d, h)[:5]  # noqa: E731
     best_u, history, horizons, reason, converged = _run_stages(update, method.init, u0, data, stages, steps, tol,
                                                              patience, progress)
@@ -318,6 +339,9 @@ fit.__doc__ = """Fit parameters of `model`, `solver` and the initial state to ob
     1-sigma uncertainty of every fitted value (`FitResult.std`) comes from the Gauss-Newton curvature at the
     optimum; a direction of the parameters the data cannot determine (the common scale of all masses, with
     positions alone) gets an `IdentifiabilityWarning` naming the parameters, and std inf.
+
+    A driven experiment (applied forces, a moving anchor) passes its known inputs as `forces` and `targets`, as
+    for `rollout`; a known force also sets the mass scale that positions alone leave open.
 
     Args:
       model, state, solver, dt: as for `rollout`; their values of the fitted parameters are the initial guess.
@@ -363,6 +387,15 @@ fit.__doc__ = """Fit parameters of `model`, `solver` and the initial state to ob
       horizon: "grow" (default), "full" (one stage: the whole record), or increasing step counts of the
         stages (the whole record is appended as the last stage if missing; the first must hold at least as
         many observed coordinates as fitted scalars).
+      forces, targets: the experiment's known inputs, as for `rollout`: `forces` [T, n, dim] (N, held during
+        each step) and `targets` [T, n_fixed, dim] (m, the fixed particles' positions after each step, in
+        increasing index order), T = max(sample_steps): entry j - 1 is step j, so observed[s] comes after the
+        entries before sample_steps[s]. With batched observations [B, T, ...], one per recording, or [T, ...]
+        shared by all. Every stage simulates the whole record under the whole drive (stages mask observations,
+        not steps); with windows, window w runs steps w W + 1 .. (w + 1) W with entries w W .. (w + 1) W - 1,
+        and its fixed particles start on targets[w W - 1] (known, not fitted). Checked before tracing (shape,
+        real, finite; `targets` need fixed particles), the error naming the argument. Not fitted; under a drive
+        the energy it adds does not count as divergence in `converged`.
 
     Returns:
       FitResult(model, solver, params, history, iterations, converged, window_states, reason, horizons, state,
@@ -418,10 +451,14 @@ class _Problem:
     stage's horizon masked out. u = {"theta": the ParamSet's unconstrained values, and with windows "__x",
     "__v": the free start states of windows 1..}."""
 
-    def __init__(self, model, solver, ob, pset: ParamSet, dt, checkpoint, n_win, continuity):
+    def __init__(self, model, solver, ob, pset: ParamSet, dt, checkpoint, n_win, continuity, drive=(None, None)):
         self.model, self.solver, self.ob, self.pset, self.dt = model, solver, ob, pset, dt
         self.checkpoint, self.n_win, self.continuity = checkpoint, n_win, continuity
         self.W = ob.T // n_win
+        # driven (forces or targets given): the drive's work is no divergence (_checked_rollout)
+        self.driven = any(a is not None for a in drive)
+        self.fixed = np.flatnonzero(np.asarray(model.topology.fixed))           # user indices, targets' order
+        self.starts = np.arange(1, n_win) * self.W                               # first steps of windows 1..
         # window of every sample, and its index in that window's record (0: the window's start state)
         self.win_of = np.maximum(ob.ss - 1, 0) // self.W
         self.pos_in = ob.ss - self.win_of * self.W
@@ -430,27 +467,47 @@ class _Problem:
         """(model, batched start state, solver) with the fitted parameters put in."""
         return self.pset.apply(u["theta"], self.model, state_b, self.solver, self.ob.batched)
 
-    def simulate(self, m, s, st, n):
-        # Driving inputs (forces, targets) known for the experiment would be passed to the rollout here, sliced
-        # to each window's steps when windows are used.
-        return jax.vmap(lambda st1: _rollout_jit(m, st1, s, self.dt, n, 1, self.checkpoint))(st)
+    def simulate(self, m, s, st, n, drive):
+        """Rollouts of n steps from the start states st [R, ...] under the drive (forces, targets), each None or
+        [R, n, ...]: one per start state."""
+        return jax.vmap(lambda st1, f1, t1: _rollout_jit(m, st1, s, self.dt, n, 1, self.checkpoint, True, f1, t1))(
+            st, *drive)
 
-    def window_guess(self, u0, state_b, dt):
-        """Initial free window starts: a rollout of the guess, overwritten by observations where observed."""
+    def window_drive(self, drive):
+        """The drive [B, T, ...] cut into the windows' steps: [B * n_win, W, ...], window w of recording b at
+        b * n_win + w (the order of the flattened window start states)."""
+        return tuple(None if a is None else a.reshape((a.shape[0] * self.n_win, self.W) + a.shape[2:])
+                     for a in drive)
+
+    def fixed_starts(self, st, drive):
+        """[B, n_win - 1, n_fixed, dim] where the fixed particles are when windows 1.. start: on their targets of
+        the step before (`targets[start - 1]`), else where the start state holds them (they never move). Known,
+        so not fitted."""
+        targets = drive[1]
+        if targets is not None:
+            return targets[:, self.starts - 1]
+        x = st.x[:, None, self.fixed]
+        return jnp.broadcast_to(x, (x.shape[0], self.n_win - 1) + x.shape[2:])
+
+    def window_guess(self, u0, state_b, dt, drive=(None, None)):
+        """Initial free window starts: a rollout of the guess, overwritten by observations where observed (free
+        particles only: the fixed ones' positions are known)."""
         if self.n_win == 1:
             return u0, None
         ob, W = self.ob, self.W
         m, st, s = self.start(u0, state_b)
-        _, guess = self.simulate(m, s, st, ob.T)
-        starts = np.arange(1, self.n_win) * W
+        _, guess = self.simulate(m, s, st, ob.T, drive)
+        starts = self.starts
         xs, vs = np.array(guess.x[:, starts - 1]), np.array(guess.v[:, starts - 1])
         lookup = {int(s): q for q, s in enumerate(ob.ss)}
         obs_np = np.asarray(ob.obs)
+        free = ~np.isin(ob.pidx, self.fixed)
         for w, s0 in enumerate(starts):
             if s0 in lookup:
-                xs[:, w, ob.pidx] = obs_np[:, lookup[s0]]
+                xs[:, w, ob.pidx[free]] = obs_np[:, lookup[s0]][:, free]
             if s0 - 1 in lookup and s0 + 1 in lookup:
-                vs[:, w, ob.pidx] = (obs_np[:, lookup[s0 + 1]] - obs_np[:, lookup[s0 - 1]]) / (2 * float(dt))
+                vs[:, w, ob.pidx[free]] = (obs_np[:, lookup[s0 + 1]][:, free]
+                                           - obs_np[:, lookup[s0 - 1]][:, free]) / (2 * float(dt))
         dtype = jnp.result_type(state_b.x)
         return {**u0, "__x": jnp.asarray(xs, dtype), "__v": jnp.asarray(vs, dtype)}, jnp.asarray(
             np.asarray(guess.lam[:, starts - 1]), dtype)
@@ -459,32 +516,37 @@ class _Problem:
         """(r, full, aux): residuals r with stage loss sum(r^2) (samples after `horizon` steps masked, each part
         a mean), the loss over the whole record, and aux = (the rollout [B, T, ...] and its start state, the
         position errors [B, S, k, dim] of the whole record)."""
-        obs_b, state_b, lam_starts = data
+        obs_b, state_b, lam_starts, drive = data
         ob = self.ob
         m, st, s = self.start(u, state_b)
         inside = jnp.asarray(ob.ss) <= horizon                                  # [S]
         if self.n_win == 1:
-            _, tr = self.simulate(m, s, st, ob.T)
+            _, tr = self.simulate(m, s, st, ob.T, drive)
             xs = jnp.concatenate([jnp.asarray(st.x, tr.x.dtype)[:, None], tr.x], 1)
             err = xs[:, ob.ss][:, :, ob.pidx] - obs_b
             r, full = _masked_mean_residuals(err, inside, 1)
             return r, full, (tr, st, err)
         B = obs_b.shape[0]
-        x0 = jnp.concatenate([st.x[:, None], u["__x"]], 1)                      # [B, n_win, n, dim]
+        xw = u["__x"]
+        if len(self.fixed):                        # the fixed particles' positions are known, not fitted
+            xw = xw.at[:, :, self.fixed].set(self.fixed_starts(st, drive).astype(xw.dtype))
+        x0 = jnp.concatenate([st.x[:, None], xw], 1)                            # [B, n_win, n, dim]
         v0 = jnp.concatenate([st.v[:, None], u["__v"]], 1)
         l0 = jnp.concatenate([st.lam[:, None], lam_starts], 1)
         flat = State(*(a.reshape((-1,) + a.shape[2:]) for a in (x0, v0, l0)))
-        final, tr = self.simulate(m, s, flat, self.W)
+        final, tr = self.simulate(m, s, flat, self.W, self.window_drive(drive))
         x_all = tr.x.reshape((B, self.n_win, self.W) + tr.x.shape[2:])
         x_all = jnp.concatenate([x0[:, :, None], x_all], 2)                     # [B, n_win, W + 1, n, dim]
         err = x_all[:, self.win_of, self.pos_in][:, :, ob.pidx] - obs_b
         r, full = _masked_mean_residuals(err, inside, 1)
         fx = final.x.reshape((B, self.n_win) + final.x.shape[1:])[:, :-1]
         fv = final.v.reshape((B, self.n_win) + final.v.shape[1:])[:, :-1]
-        joined = jnp.asarray(np.arange(1, self.n_win) * self.W) < horizon        # windows 1.. starting inside
+        joined = jnp.asarray(self.starts) < horizon                               # windows 1.. starting inside
         c = jnp.sqrt(jnp.asarray(self.continuity, r.dtype))
         out = [r]
-        for gap in (fx - u["__x"], (fv - u["__v"]) * (self.W * self.dt)):
+        free = jnp.asarray(np.asarray(self.model.topology.fixed) == 0)[:, None]   # [n, 1]: no gap at fixed ones
+        for gap in (fx - xw, (fv - u["__v"]) * (self.W * self.dt)):
+            gap = jnp.where(free, gap, jnp.zeros((), gap.dtype))
             rg, fg = _masked_mean_residuals(gap, joined, 1)
             out.append(c * rg)
             full = full + self.continuity * fg
@@ -617,7 +679,7 @@ def _result(problem, method, best_u, u0, data, lam_starts, history, horizons, re
         J = _jacobian(problem)(best_u, data, T)
     err = np.asarray(err, np.float64)
     m, st_b, s = problem.start(best_u, data[1])
-    failures, corr = _failures(pset, ob, best_u, u0, diag, err)
+    failures, corr = _failures(pset, ob, best_u, u0, diag, err, problem.driven)
     if failures:
         converged, reason = False, "; ".join([reason] + failures)
     std, unidentified = None, ()
@@ -640,27 +702,33 @@ def _result(problem, method, best_u, u0, data, lam_starts, history, horizons, re
 
 def _checked_rollout(problem):
     """(diverged [B], first bad step [B]) of jc.diagnose on the rollout of u: one forward program, compiled once
-    after the fit (inside the update it cost the 16x16 cloth fit 1.2 s of compilation and 8% per update)."""
+    after the fit (inside the update it cost the 16x16 cloth fit 1.2 s of compilation and 8% per update). Under
+    a drive (forces or targets) the energy gain is not counted: the drive does work on the system."""
     @jax.jit
     def check(u, data, horizon):
         traj, start, _ = problem.residuals(u, data, horizon)[2]
         m = problem.start(u, data[1])[0]
-        d = jax.vmap(diagnose, in_axes=(None, 0, 0))(m, traj, start)
+        if problem.driven:
+            d = jax.vmap(lambda tr, s0: _diagnosis(m, tr, s0, energy=False))(traj, start)
+        else:
+            d = jax.vmap(diagnose, in_axes=(None, 0, 0))(m, traj, start)
         return d.diverged, d.first_bad
 
     return check
 
 
-def _failures(pset, ob, best_u, u0, diag, err):
+def _failures(pset, ob, best_u, u0, diag, err, driven=False):
     """(what is wrong with the fitted result, as text; the residuals' lag-1 correlation): a rollout that
     jc.diagnose flags, a value at a bound of its transform, residuals that are correlated in time."""
     failures = []
     bad = np.asarray(diag[0])
     if bad.any():
         b = int(np.argmax(bad))
+        what = ("non-finite, a constraint off by more than its length, or a contact overlap; under a drive an "
+                "energy gain is not counted" if driven else
+                "non-finite, a constraint off by more than its length, or an energy gain")
         failures.append(f"diverged: jc.diagnose flags the fitted rollout{f' of trajectory {b}' if ob.batched else ''}"
-                        f" from step {int(np.asarray(diag[1])[b]) + 1} (non-finite, a constraint off by "
-                        "more than its length, or an energy gain)")
+                        f" from step {int(np.asarray(diag[1])[b]) + 1} ({what})")
     hits = unc.at_bounds(pset, best_u["theta"], u0["theta"])
     if hits:
         failures.append("at a bound: " + "; ".join(hits))

@@ -114,3 +114,41 @@ def double_pendulum_recording(seed=None, noise=None, method=None, **changes):
                             method=method)
     rng = np.random.default_rng(spec["seed"])
     return t, truth + spec["noise"] * rng.standard_normal(truth.shape), truth, spec
+
+
+def driven_pendulum(t, length, angle, omega=0.0, pivot=None, force=None, mass=1.0, g=9.81, rtol=1e-12,
+                    atol=1e-12, method=None):
+    """A planar pendulum (point mass `mass` on a massless rod of `length`) whose pivot follows a prescribed path
+    and whose bob is pushed by a prescribed force, in its angle coordinate (conventions of the module doc).
+
+    pivot(t) -> (p, p', p'') three [2] arrays (m, m/s, m/s^2), default at rest at the origin; force(t) -> [2]
+    (N) on the bob, default none. With e = (sin a, -cos a) and e_a = (cos a, sin a) the bob is at p + L e and
+    m L a'' = (F - m p'') . e_a - m g sin a. Starts at `angle` with angular velocity `omega` (rad/s; the bob then
+    moves at p'(0) + L omega e_a).
+
+    Returns (bob [len(t), 2], pivot [len(t), 2]) positions at the times t (DOP853 at rtol = atol = 1e-12, or
+    RK4 without scipy, as `chain_angles`)."""
+    L, m = float(length), float(mass)
+    pivot = pivot or (lambda _: (np.zeros(2), np.zeros(2), np.zeros(2)))
+    force = force or (lambda _: np.zeros(2))
+
+    def rhs(s, y):
+        a, w = y
+        ea = np.array([np.cos(a), np.sin(a)])
+        acc = (np.dot(np.asarray(force(s), np.float64) / m - pivot(s)[2], ea) - g * np.sin(a)) / L
+        return np.array([w, acc])
+
+    t = np.atleast_1d(np.asarray(t, np.float64))
+    y0 = np.array([float(angle), float(omega)])
+    if method is None:
+        method = "scipy" if have_scipy() else "rk4"
+    if method == "rk4":
+        a = _rk4(rhs, y0, t, 1e-4)[0]
+    else:
+        from scipy.integrate import solve_ivp
+        sol = solve_ivp(rhs, (0.0, float(t.max())), y0, method="DOP853", t_eval=t, rtol=rtol, atol=atol)
+        if not sol.success:
+            raise RuntimeError(sol.message)
+        a = sol.y[0]
+    p = np.stack([np.asarray(pivot(s)[0], np.float64) for s in t])
+    return p + L * np.stack([np.sin(a), -np.cos(a)], -1), p
