@@ -28,6 +28,10 @@ from jaxcon.diagnostics import (
     violation as violation,
 )
 from jaxcon.identification.fit import FitResult as FitResult, fit as fit
+from jaxcon.identification.uncertainty import (
+    IdentifiabilityWarning as IdentifiabilityWarning,
+    MisfitWarning as MisfitWarning,
+)
 from jaxcon.solvers.direct import Direct as Direct
 from jaxcon.solvers.jacobi import Jacobi as Jacobi
 from jaxcon.solvers.penalty import Penalty as Penalty
