@@ -54,9 +54,27 @@ def default_params(solver) -> tuple:
 
 
 # ---- parameter lookup -----------------------------------------------------------------------------------------
+def _constraint_of(name, model):
+    """The constraint set and key a dotted name "<set>.<param>" or "<set>.compliance" refers to, or None."""
+    if "." not in name:
+        return None
+    set_name, key = name.split(".", 1)
+    sets = {c.name: c for c in getattr(model, "constraints", ())}
+    if set_name not in sets:
+        raise ValueError(f"fit: unknown parameter {name!r}: the model has no constraint set {set_name!r} (its sets "
+                         f"are {sorted(sets)})")
+    c = sets[set_name]
+    if key != "compliance" and key not in c.params:
+        raise ValueError(f"fit: unknown parameter {name!r}: set {set_name!r} has the parameters "
+                         f"{sorted(c.params) + ['compliance']}")
+    return c, key
+
+
 def _owner(name, model, solver):
     if name in STATE_PARAMS:
         return "state"
+    if _constraint_of(name, model) is not None:
+        return "constraint"
     if name in Model._data_fields:
         return "model"
     fields = getattr(type(solver), "_data_fields", ())
@@ -64,7 +82,8 @@ def _owner(name, model, solver):
         return "solver"
     raise ValueError(
         f"fit: unknown parameter {name!r}; model parameters are {list(Model._data_fields)}, "
-        f"{type(solver).__name__} parameters are {list(fields)}, the initial state's are {list(STATE_PARAMS)} "
+        f"{type(solver).__name__} parameters are {list(fields)}, the initial state's are {list(STATE_PARAMS)}, "
+        f"a constraint set's are '<set>.<param>' and '<set>.compliance' "
         f"(the default for {type(solver).__name__} is {default_params(solver)}); anything else (a scale, a ratio, "
         "shared or reduced coordinates) can be fitted as a pytree with `setup=`")
 
@@ -73,6 +92,9 @@ def _get(name, model, solver, state=None):
     owner = _owner(name, model, solver)
     if owner == "state":
         return state.x if name == "x0" else state.v
+    if owner == "constraint":
+        c, key = _constraint_of(name, model)
+        return c.compliance if key == "compliance" else c.params[key]
     return getattr(model if owner == "model" else solver, name)
 
 
@@ -82,7 +104,20 @@ def _set(model, solver, values: dict):
     # `replace` validates concrete values; inside jit the values are tracers and validation is skipped.
     model = _tree_replace(model, m)
     solver = _tree_replace(solver, s)
+    for name, value in values.items():
+        if _owner(name, model, solver) == "constraint":
+            model = _constraint_replace(model, *_constraint_of(name, model), value)
     return model, solver
+
+
+def _constraint_replace(model, c, key, value):
+    """`model` with constraint set `c`'s parameter `key` (or its compliance) set to `value`, without checks (the
+    value may be a tracer or batched)."""
+    leaves, treedef = jax.tree_util.tree_flatten(c)
+    keys = sorted(c.params) + ["compliance"]
+    leaves[keys.index(key)] = value
+    new = jax.tree_util.tree_unflatten(treedef, leaves)
+    return jax.tree_util.tree_map(lambda x: new if x is c else x, model, is_leaf=lambda x: x is c)
 
 
 def _tree_replace(obj, changes):
@@ -105,6 +140,8 @@ def _kind(name, value, transforms, bounds=()):
         return "logit"
     if name in TRANSFORMS:
         return TRANSFORMS[name]
+    if name.endswith(".compliance"):        # a constraint set's compliance: > 0
+        return "log"
     a = np.asarray(value)
     return "log" if np.all(a > 0) else "identity"
 
