@@ -84,6 +84,7 @@ def bench(args) -> int:
           "rollouts ran (/proc/stat), one sign of a loaded host; fastest runs are in the JSON.")
     out = {"machine": info, "solver": f"PGS(iterations={iterations}, beta=0.2)", "results": results}
     out["xpbd_cloth"] = _xpbd_cloth(args.small, args.repeats)
+    out["user_constraints"] = user_constraint_cloth(args.small, args.repeats)
     out["gradient_compile"] = gradient_compile(args.small, args.repeats)
     if jax.config.jax_enable_x64:
         out["double_pendulum_best"] = _best_double_pendulum(args.repeats)
@@ -127,6 +128,43 @@ def _xpbd_cloth(small: bool, repeats: int) -> dict:
           f"{row['min_ns_per_constraint_iteration_recording']:.2f} / "
           f"{row['min_ns_per_constraint_iteration_final_state_only']:.2f} ns; host steal "
           f"{_pct(row['host_steal_recording']).strip()} / {_pct(row['host_steal_final_state_only']).strip()}")
+    return row
+
+
+def user_constraint_cloth(small: bool, repeats: int) -> dict:
+    """The cost of constraints written by the user: the bench cloth (32x32, float32, PGS(10), dt 1/240) with its
+    edges as built-in rods and again as a `jc.Constraint` distance set (`jc.constraints.distance`: C and J from
+    autodiff, rows through the generic gather path), measured in the same run; and with `bending` on every
+    interior edge, XPBD. us per step, final state only, median after compilation."""
+    from jaxcon.core import constraints
+    from jaxcon.core.model import build
+    from jaxcon.solvers.xpbd import XPBD
+
+    n, steps, dt = (8, 10, 1 / 240) if small else (32, 50, 1 / 240)
+    rods_model, state = scenes.cloth(n, n, dtype=np.float32)
+    pairs = np.asarray(rods_model.pairs)
+    user = constraints.distance(pairs, rest=np.asarray(rods_model.rest_length))
+    user_model, _ = build(np.asarray(state.x), 1.0 / (n * n), fixed=[0, n - 1], constraints=[user],
+                          dtype=np.float32)
+    bend_model, bend_state = scenes.cloth(n, n, dtype=np.float32, bending=1e-3)
+    row = {"case": f"cloth_{n}x{n}", "dtype": "float32", "dt": dt, "steps": steps}
+    for key, model, solver, s0 in (("rods", rods_model, PGS(10), state), ("user_constraint", user_model, PGS(10), state),
+                                   ("rods_xpbd", rods_model, XPBD(), state),
+                                   ("bending_xpbd", bend_model, XPBD(), bend_state)):
+        fn = lambda s, model=model, solver=solver: rollout(model, s, solver, dt, steps, save_every=steps)  # noqa: E731
+        t_c, t_run, _ = compile_and_time(fn, s0, repeats=repeats)
+        row[key] = {"us_per_step": t_run / steps * 1e6, "compile_s": t_c, "constraints": model.n_constraints,
+                    "colours": model.topology.n_colours}
+    row["user_over_rods"] = row["user_constraint"]["us_per_step"] / row["rods"]["us_per_step"]
+    row["bending_over_rods_xpbd"] = row["bending_xpbd"]["us_per_step"] / row["rods_xpbd"]["us_per_step"]
+    print(f"\n{row['case']}, float32, dt 1/240, final state only (us/step, compile s):")
+    for key, label in (("rods", "PGS(10), built-in rods"), ("user_constraint", "PGS(10), edges as a jc.Constraint"),
+                       ("rods_xpbd", "XPBD(), built-in rods"), ("bending_xpbd", "XPBD(), rods + bending 1e-3")):
+        r = row[key]
+        print(f"  {label:36s} {r['us_per_step']:10.1f} {r['compile_s']:7.2f}  ({r['constraints']} constraints, "
+              f"{r['colours']} colours)")
+    print(f"  user Constraint / rods: {row['user_over_rods']:.2f}x; bending / rods (XPBD): "
+          f"{row['bending_over_rods_xpbd']:.2f}x")
     return row
 
 
