@@ -45,10 +45,10 @@ _EPS = 1e-6
 
 def default_params(solver) -> tuple:
     """The parameters `fit` fits when `params` is not given: the rest lengths, and Baumgarte's beta where the
-    solver has one that acts on the constraints (PGS, Jacobi, Direct with stabilization='baumgarte'). RATTLE,
-    XPBD, SoftStep and Penalty have no beta, and with split impulses beta does not act on rods and ropes."""
+    solver has one (PGS, Jacobi, Direct; with split impulses too, where beta acts within the slop). RATTLE,
+    XPBD, SoftStep and Penalty have no beta."""
     fields = getattr(type(solver), "_data_fields", ())
-    if "beta" in fields and getattr(solver, "stabilization", "baumgarte") != "split":
+    if "beta" in fields:
         return ("rest_length", "beta")
     return ("rest_length",)
 
