@@ -306,7 +306,7 @@ def _diagnosis(model: Model, traj: Trajectory, state0: Optional[State], energy: 
     the energy gain out of `bad` (`jc.fit` of a driven experiment: the drive's work is no divergence)."""
     t = model.topology
     x, v = traj.x, traj.v
-    viol = nan_max(_violation(model, x), axis=-1) if t.m else jnp.zeros(x.shape[:1], x.dtype)
+    viol = nan_max(_violation(model, x), axis=-1) if t.m_pairs else jnp.zeros(x.shape[:1], x.dtype)
     e = _energy(model, x, v)
     x0, v0 = (x[0], v[0]) if state0 is None else (state0.x, state0.v)
     e0 = _energy(model, x0, v0)

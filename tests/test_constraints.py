@@ -280,3 +280,11 @@ def test_fit_recovers_a_bending_compliance_from_a_scipy_recording():
     with pytest.raises(ValueError, match=r"'angle' has the parameters \['rest', 'compliance'\]"):
         jc.fit(model, state, jc.RATTLE(10), 1 / (hz * sub), obs[1:], ("angle.stiffness",),
                observed_particles=[2, 3], sample_steps=np.arange(1, len(ts)) * sub, progress=False)
+
+
+def test_diagnose_takes_a_model_of_sets_only():
+    """A model whose only constraints are a set (no rods or ropes): jc.diagnose used to fail on an empty max."""
+    model, state = jc.build(np.array([[0.5, 0.2]]), [0.3], constraints=[jc.Constraint(_wire, [[0]], {"a": [0.8]})])
+    _, tr = jc.rollout(model, state, jc.PGS(10), 1 / 240, 50)
+    d = jc.diagnose(model, tr, state)
+    assert not bool(d.diverged) and d.violation.shape == (50,)
