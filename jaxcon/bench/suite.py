@@ -16,6 +16,7 @@ from jaxcon.bench.timing import (
     machine,
     steal_fraction,
 )
+from jaxcon.core.batch import CPU_CHUNK
 from jaxcon.core.sim import rollout
 from jaxcon.diagnostics import energy_drift, nan_max, violation
 from jaxcon.solvers.pgs import PGS
@@ -197,34 +198,64 @@ def _best_double_pendulum(repeats: int) -> dict:
     return row
 
 
-def batched(small: bool, repeats: int) -> list:
+def _kernel_text(k) -> str:
+    return "" if k is None else f"{k['total']} ({k['fusion']}f+{k['copy']}c" + (f"+{k['other']}o)" if k["other"]
+                                                                                else ")")
+
+
+def batched(small: bool, repeats: int, sizes=None) -> list:
     """Batched rollouts of many systems on every backend found: jax.vmap of rollout, jc.batched_rollout (sharded
-    over the backend's devices), and the plain batch-minor reference measured in the same run; system-steps
-    (pendulum-steps, cloth-steps, billiards-steps: one step of a 16-ball table) per second. Models with contacts
-    are batched by jax.vmap inside batched_rollout (docs/contacts.md)."""
+    over the backend's devices; where that runs in pieces, also in one piece) and the plain batch-minor
+    reference measured in the same run; system-steps (pendulum-steps, cloth-steps, billiards-steps: one step
+    of a 16-ball table) per second, and the kernels each program launches per time step (fusions and copies in
+    XLA's optimised HLO, `jaxcon.bench.kernels`). Models with contacts are batched by jax.vmap inside
+    batched_rollout (docs/contacts.md). `sizes`: the double pendulum's batch sizes (default: the bench's)."""
     from jaxcon.bench.throughput import backends, batched_throughput
 
     steps = 24 if small else 240
-    cases = [("double_pendulum", (1, 64) if small else (1, 1024, 16384)), ("cloth", (2,) if small else (64,))]
-    if not small:       # the small run (the suite's) leaves out billiards: its batched path is a vmap of rollout
+    pend = tuple(sizes) if sizes else (1, 64) if small else (1, 1024, 16384, 131072)
+    cases = [("double_pendulum", pend), ("cloth", (2,) if small else (64,))]
+    if not small and not sizes:   # the small run (the suite's) leaves out billiards: its path is a vmap of rollout
         cases.append(("billiards", (64, 256)))
     rows = []
     for backend in backends():
         print(f"\nbatched rollouts over initial states, PGS(10), {steps} steps, float32, final state only; backend "
               f"{backend}, {len(jax.local_devices(backend=backend))} device(s). vmap: jax.vmap(jc.rollout); "
-              "batched_rollout: jc.batched_rollout (batch-minor, sharded); reference: plain batch-minor PGS")
-        print(f"{'scene':18s} {'batch':>6s} {'mode':>16s} {'devices':>7s} {'compile s':>9s} {'run s':>9s} "
-              f"{'system-steps/s':>15s} {'vs reference':>12s}")
-        for scene, sizes in cases:
-            for b in sizes:
+              "batched_rollout: jc.batched_rollout with its defaults (batch-minor, sharded; on CPU in pieces of "
+              f"{CPU_CHUNK}); one_piece: jc.batched_rollout(chunk=batch), what an accelerator runs by default; "
+              "reference: plain batch-minor PGS. kernels/step: fusions and copies per time step in the compiled "
+              "program (loops inside a step counted per trip)")
+        print(f"{'scene':18s} {'batch':>7s} {'mode':>16s} {'devices':>7s} {'compile s':>9s} {'run s':>9s} "
+              f"{'system-steps/s':>15s} {'vs reference':>12s} {'kernels/step':>14s} {'vs reference':>12s}")
+        for scene, sizes_ in cases:
+            for b in sizes_:
                 got = batched_throughput((b,), steps=steps, scene=scene, repeats=max(1, min(repeats, 3)),
                                          backend=backend)
-                ref = {r["mode"]: r["system_steps_per_s"] for r in got}.get("reference")
+                ref = {r["mode"]: r for r in got}.get("reference")
                 for r in got:
-                    r["vs_reference"] = None if ref is None else r["system_steps_per_s"] / ref
+                    r["vs_reference"] = None if ref is None else r["system_steps_per_s"] / ref["system_steps_per_s"]
+                    r["kernels_vs_reference"] = (None if ref is None or not r["kernels"] or not ref["kernels"]
+                                                 else r["kernels"]["total"] / ref["kernels"]["total"])
                     name = {"cloth": "cloth_16x16", "billiards": "billiards_16"}.get(scene, scene)
                     vs = "" if ref is None else f"{r['vs_reference']:.2f}x"
-                    print(f"{name:18s} {r['batch']:6d} {r['mode']:>16s} {r['devices']:7d} {r['compile_s']:9.2f} "
-                          f"{r['run_s']:9.4f} {r['system_steps_per_s']:15.3g} {vs:>12s}")
+                    kvs = "" if r["kernels_vs_reference"] is None else f"{r['kernels_vs_reference']:.2f}x"
+                    print(f"{name:18s} {r['batch']:7d} {r['mode']:>16s} {r['devices']:7d} {r['compile_s']:9.2f} "
+                          f"{r['run_s']:9.4f} {r['system_steps_per_s']:15.3g} {vs:>12s} "
+                          f"{_kernel_text(r['kernels']):>14s} {kvs:>12s}")
                     rows.append(r)
     return rows
+
+
+def batched_only(args) -> int:
+    """`python -m jaxcon bench --batched [N ...]`: the batched section alone (double pendulums at batch sizes N,
+    and 64 cloths), written to the JSON as {"machine", "batched", "host_steal"}."""
+    info, start = machine(), _cpu_jiffies()
+    print(f"jaxcon bench --batched: {info['cpu']}, {info['cores']} cores, jax {info['jax']} on {info['platform']}")
+    out = {"machine": info, "batched": batched(args.small, args.repeats, args.batched or None)}
+    out["host_steal"] = steal_fraction(start, _cpu_jiffies())
+    print(f"\nhost steal over the run: {_pct(out['host_steal']).strip()} of this machine's CPU time")
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(out, f, indent=2)
+        print(f"wrote {args.out}")
+    return 0
