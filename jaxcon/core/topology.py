@@ -305,6 +305,12 @@ class Topology:
         self._hash = hash(self._key)
 
     compact = False
+    #: Copies in a batch-minor topology (`jaxcon.core.batch.batch_minor_topology`): the view's last axis; None
+    #: for a single system.
+    batch = None
+    #: Whether a batch-minor topology's solvers carry each sweep's velocities and impulses in one packed array
+    #: (`jaxcon.solvers.pgs.packed_sweeps`): what a batch run in one piece uses.
+    packed = False
 
     @property
     def n_colours(self) -> int:

@@ -39,7 +39,7 @@ def frames(sys: System, x) -> tuple:
         xi, xj = L.gather_pair(sys.topology, blk, x)
         wi, wj = L.gather_pair(sys.topology, blk, sys.w)
         wi, wj = wi[0], wj[0]
-        dist, n = L.safe_norm(xj - xi, axis=0)
+        dist, n = L.safe_norm(xj - xi, axis=0, elementwise=sys.topology.batch is not None)
         k = L.safe_reciprocal(wi + wj) * (dist > 0).astype(dist.dtype)
         out.append(Frame(n, dist, dist - rest, wi, wj, k))
     return tuple(out)
