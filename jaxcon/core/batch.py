@@ -45,6 +45,7 @@ def batch_minor_topology(t: Topology, batch: int, packed: bool = False) -> Topol
         return (np.asarray(idx, np.int64)[:, None] * B + ar).reshape(-1)
 
     out.n, out.dim, out.m = t.n * B, t.dim, t.m * B
+    out.m_pairs, out.sets = t.m_pairs * B, ()          # models with constraint sets are batched with vmap
     out.i, out.j = rep(t.i), rep(t.j)
     out.is_rope, out.colour = np.repeat(t.is_rope, B), np.repeat(t.colour, B)
     out.fixed = np.repeat(t.fixed, B)                   # copy b of particle p is p * B + b
@@ -177,10 +178,12 @@ CPU_CHUNK = 1024
 
 def layout_generic(solver, model=None) -> bool:
     """Whether `solver` only uses the internal layout, so it runs on the batch-minor topology. `Direct`
-    assembles its matrices in user order, contacts gather pairs over the particle axis, and a hub's star
-    (`topology.star_colouring`) sums over its spokes; all three are batched with `jax.vmap` instead."""
+    assembles its matrices in user order, contacts gather pairs over the particle axis, a hub's star
+    (`topology.star_colouring`) sums over its spokes, and a `jc.Constraint` set's rows have no batch-minor
+    blocks; all four are batched with `jax.vmap` instead."""
     return getattr(solver, "batch_minor", True) and (model is None or (model.contact is None
-                                                                       and not model.topology.has_stars))
+                                                                       and not model.topology.has_stars
+                                                                       and not model.topology.has_sets))
 
 
 def drive_in(t: Topology, forces, targets, dtype):
