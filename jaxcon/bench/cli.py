@@ -54,9 +54,9 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("--f32-only", action="store_true", help="skip the float64 runs")
     b.add_argument("--no-batched", action="store_true", help="skip the batched (vmap) throughput section")
     b.add_argument("--batched", nargs="*", type=_positive_int, metavar="N",
-                   help="instead: only the batched section (throughput and kernels per step of vmap, "
-                        "batched_rollout, batched_rollout in one piece and the plain reference), double pendulums "
-                        "at batch sizes N (default 1 1024 16384 131072) and 64 cloths")
+                   help="instead: only the batched section on JAX's default backend (throughput and kernels per "
+                        "step of vmap, batched_rollout, batched_rollout in one piece and the plain reference), "
+                        "double pendulums at batch sizes N (default 1 1024 16384 131072) and 64 cloths")
     b.add_argument("--speed-vs-error", action="store_true",
                    help="instead: sweep every solver over iterations, substeps and dt; error against cost "
                         "(JSON, CSV and, with matplotlib, plots)")

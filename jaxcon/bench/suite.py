@@ -203,13 +203,14 @@ def _kernel_text(k) -> str:
                                                                                 else ")")
 
 
-def batched(small: bool, repeats: int, sizes=None) -> list:
+def batched(small: bool, repeats: int, sizes=None, only_default_backend: bool = False) -> list:
     """Batched rollouts of many systems on every backend found: jax.vmap of rollout, jc.batched_rollout (sharded
     over the backend's devices; where that runs in pieces, also in one piece) and the plain batch-minor
     reference measured in the same run; system-steps (pendulum-steps, cloth-steps, billiards-steps: one step
     of a 16-ball table) per second, and the kernels each program launches per time step (fusions and copies in
     XLA's optimised HLO, `jaxcon.bench.kernels`). Models with contacts are batched by jax.vmap inside
-    batched_rollout (docs/contacts.md). `sizes`: the double pendulum's batch sizes (default: the bench's)."""
+    batched_rollout (docs/contacts.md). `sizes`: the double pendulum's batch sizes (default: the bench's);
+    `only_default_backend`: measure JAX's default backend only (the GPU where there is one), not every one."""
     from jaxcon.bench.throughput import backends, batched_throughput
 
     steps = 24 if small else 240
@@ -218,7 +219,7 @@ def batched(small: bool, repeats: int, sizes=None) -> list:
     if not small and not sizes:   # the small run (the suite's) leaves out billiards: its path is a vmap of rollout
         cases.append(("billiards", (64, 256)))
     rows = []
-    for backend in backends():
+    for backend in [jax.default_backend()] if only_default_backend else backends():
         print(f"\nbatched rollouts over initial states, PGS(10), {steps} steps, float32, final state only; backend "
               f"{backend}, {len(jax.local_devices(backend=backend))} device(s). vmap: jax.vmap(jc.rollout); "
               "batched_rollout: jc.batched_rollout with its defaults (batch-minor, sharded; on CPU in pieces of "
@@ -248,10 +249,10 @@ def batched(small: bool, repeats: int, sizes=None) -> list:
 
 def batched_only(args) -> int:
     """`python -m jaxcon bench --batched [N ...]`: the batched section alone (double pendulums at batch sizes N,
-    and 64 cloths), written to the JSON as {"machine", "batched", "host_steal"}."""
+    and 64 cloths) on JAX's default backend, written to the JSON as {"machine", "batched", "host_steal"}."""
     info, start = machine(), _cpu_jiffies()
     print(f"jaxcon bench --batched: {info['cpu']}, {info['cores']} cores, jax {info['jax']} on {info['platform']}")
-    out = {"machine": info, "batched": batched(args.small, args.repeats, args.batched or None)}
+    out = {"machine": info, "batched": batched(args.small, args.repeats, args.batched or None, True)}
     out["host_steal"] = steal_fraction(start, _cpu_jiffies())
     print(f"\nhost steal over the run: {_pct(out['host_steal']).strip()} of this machine's CPU time")
     if args.out:
