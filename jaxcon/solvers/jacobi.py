@@ -69,7 +69,8 @@ class Jacobi(Solver):
       relaxation: scale of the summed impulse in (0, 2], a differentiable leaf; None: 1 / (largest number of
         constraints at one particle) of the model being solved, or mass splitting for a model with contacts
         (a fixed value there scales every rod and contact row alike).
-      warm_start: start from the previous step's impulses (static).
+      warm_start: start from the previous step's impulses (static); a constraint set's compliant rows from a
+        share of theirs, none where the spring is stiff for the step (`common.warm_rows`).
       substeps: (sub)steps per step, static, >= 1.
       stabilization: 'baumgarte' (default) or 'split' (static): split impulses as in `PGS`, the position
         projection by Jacobi sweeps with the rods' relaxation (1 / largest degree by default).
@@ -114,7 +115,7 @@ class Jacobi(Solver):
             slop = split_slop(sys, fr, v, h, beta, share) if split else None
             bias = velocity_bias(topo, fr, beta, h, slop)
             if self.warm_start:
-                v, lam = warm_start(sys, v, fr, lam_ws)
+                v, lam = warm_start(sys, v, fr, lam_ws, h)
             else:
                 lam = tuple(jnp.zeros_like(f.C) for f in fr)
 

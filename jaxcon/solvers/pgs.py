@@ -50,7 +50,8 @@ class PGS(Solver):
       iterations: sweeps over all colours per (sub)step, static, >= 1.
       beta: Baumgarte factor in [0, 1], a differentiable leaf (0.1 to 0.3 is usual); with split impulses only
         the contacts' push-out rate.
-      warm_start: start each step from the previous step's impulses (static).
+      warm_start: start each step from the previous step's impulses (static); a constraint set's compliant rows
+        from a share of theirs, none where the spring is stiff for the step (`common.warm_rows`).
       substeps: (sub)steps per step, static, >= 1.
       warm_start_factor: scale in [0, 1] of the warm-start impulses, a differentiable leaf. 1 is the textbook
         method. With few iterations on long chains, full warm starting plus the Baumgarte bias feeds the
@@ -129,7 +130,7 @@ class PGS(Solver):
         bias = velocity_bias(topo, fr, beta, h, slop)
         v_free = v
         if self.warm_start:
-            v, lam = warm_start(sys, v, fr, lam_ws, self._factor(dtype), self.warm_start_gradient)
+            v, lam = warm_start(sys, v, fr, lam_ws, h, self._factor(dtype), self.warm_start_gradient)
         else:
             lam = tuple(jnp.zeros_like(f.C) for f in fr)
 

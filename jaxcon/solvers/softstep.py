@@ -15,7 +15,7 @@ from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact, contact_soft
-from jaxcon.solvers.common import apply_impulses, clamp_ropes, frames, gamma, row_solve
+from jaxcon.solvers.common import apply_impulses, clamp_ropes, frames, gamma, row_solve, warm_rows
 
 
 def soft_coefficients(hertz, damping_ratio, h):
@@ -33,8 +33,9 @@ def soft_coefficients(hertz, damping_ratio, h):
 def _sweep(topo, v, lam, fr, bias, mass_scale, impulse_scale, inv_h, spring=True):
     """One Gauss-Seidel sweep over the constraint colours with soft (or, mass_scale 1 and impulse_scale 0,
     rigid) rows; a slack rope (or unilateral row) is speculative and rigid. A constraint set's compliant rows
-    are their own springs instead (`common.row_solve`, bias C / h; untouched by the relax sweeps), so a
-    compliance means the same potential energy as in every other solver. Returns (v, lam)."""
+    are their own springs instead (`common.row_solve`, bias C / h; warm-started by `common.warm_rows`;
+    untouched by the relax sweeps), so a compliance means the same potential energy as in every other solver.
+    Returns (v, lam)."""
     def colour(v, blk, rows):
         f, g, lam = rows
         rel = R.rel(topo, blk, f, v)
@@ -62,7 +63,8 @@ class SoftStep(Solver):
     """Soft step (Box2D v3): per substep of length h = dt / substeps,
 
       1. integrate velocities: v += h g;
-      2. warm start: apply the previous substep's impulses;
+      2. warm start: apply the previous substep's impulses (a constraint set's compliant rows': a share,
+         `common.warm_rows`);
       3. solve, one sweep over the colours with soft constraints:
            dlam = mass_scale (n . (v_j - v_i) + bias_rate C) / (w_i + w_j) - impulse_scale lam
          (coefficients from `soft_coefficients(hertz, damping_ratio, h)`);
@@ -134,7 +136,8 @@ class SoftStep(Solver):
             bias_rate, mass_scale, impulse_scale = soft_coefficients(hertz, zeta, h)
             v = sys.apply_gravity(v, h)
             fr = frames(sys, x)
-            lam = tuple(clamp_ropes(blk, l) * (f.k > 0).astype(l.dtype) for blk, f, l in zip(topo.blocks, fr, lam))
+            lam = tuple(clamp_ropes(blk, warm_rows(f, l, h)) * (f.k > 0).astype(l.dtype)
+                        for blk, f, l in zip(topo.blocks, fr, lam))
             v = apply_impulses(sys, v, fr, lam)
             inv_h = 1 / h
             v, lam = sweep(v, lam, fr, lambda f: bias_rate * f.C, mass_scale, impulse_scale, inv_h)
@@ -163,7 +166,8 @@ class SoftStep(Solver):
         v0, v = v, sys.apply_gravity(v, h)
         v_free = v
         fr = frames(sys, x)
-        lam = tuple(clamp_ropes(blk, l) * (f.k > 0).astype(l.dtype) for blk, f, l in zip(topo.blocks, fr, lam))
+        lam = tuple(clamp_ropes(blk, warm_rows(f, l, h)) * (f.k > 0).astype(l.dtype)
+                    for blk, f, l in zip(topo.blocks, fr, lam))
         v = apply_impulses(sys, v, fr, lam)
         obs, pairs = contact.rows(cs, w, x, v0, v_free, jnp.zeros((), dtype), h)
         v, imp = contact.warm_start(cs, w, v, obs, pairs, imp)
