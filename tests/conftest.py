@@ -56,3 +56,18 @@ def _optimised(request):
 def pytest_unconfigure(config):
     if os.environ.get("JAXCON_TEST_CACHE_OWNED") == str(os.getpid()):
         shutil.rmtree(os.environ["JAX_COMPILATION_CACHE_DIR"], ignore_errors=True)
+
+
+@pytest.fixture(autouse=True)
+def _no_cache_for_fits(request):
+    """The fit tests compile without the persistent cache: writing one of `jc.fit`'s programs to it segfaulted
+    inside JAX's `put_executable_and_time` (jax 0.10.2, XLA CPU) in two full runs on 2026-11-24 (not yet
+    reduced to a reproducer; see the closing note of that day)."""
+    if not request.module.__name__.split(".")[-1].startswith("test_fit"):
+        yield
+        return
+    jax.config.update("jax_enable_compilation_cache", False)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_enable_compilation_cache", True)
