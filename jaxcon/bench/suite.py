@@ -91,13 +91,7 @@ def bench(args) -> int:
         out["double_pendulum_best"] = _best_double_pendulum(args.repeats)
     if not args.no_batched:
         out["batched"] = batched(args.small, args.repeats)
-    out["host_steal"] = steal_fraction(start, _cpu_jiffies())
-    print(f"\nhost steal over the whole bench: {_pct(out['host_steal']).strip()} of this machine's CPU time")
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump(out, f, indent=2)
-        print(f"wrote {args.out}")
-    return 0
+    return _finish(out, start, args.out, "the whole bench")
 
 
 def _xpbd_cloth(small: bool, repeats: int) -> dict:
@@ -253,10 +247,15 @@ def batched_only(args) -> int:
     info, start = machine(), _cpu_jiffies()
     print(f"jaxcon bench --batched: {info['cpu']}, {info['cores']} cores, jax {info['jax']} on {info['platform']}")
     out = {"machine": info, "batched": batched(args.small, args.repeats, args.batched or None, True)}
+    return _finish(out, start, args.out, "the run")
+
+
+def _finish(out: dict, start, path, what: str) -> int:
+    """Record and print the host steal since `start`, and write `out` as JSON to `path` (if given)."""
     out["host_steal"] = steal_fraction(start, _cpu_jiffies())
-    print(f"\nhost steal over the run: {_pct(out['host_steal']).strip()} of this machine's CPU time")
-    if args.out:
-        with open(args.out, "w") as f:
+    print(f"\nhost steal over {what}: {_pct(out['host_steal']).strip()} of this machine's CPU time")
+    if path:
+        with open(path, "w") as f:
             json.dump(out, f, indent=2)
-        print(f"wrote {args.out}")
+        print(f"wrote {path}")
     return 0

@@ -91,15 +91,9 @@ def star_colouring(i: np.ndarray, j: np.ndarray, n: int, fixed=None) -> tuple[np
             star[ks] = len(members)
             members.append((p, ks))
     colour = np.full(m, -1, np.int64)
-    used = [set() for _ in range(n)]
-    for s_id, (p, ks) in enumerate(members):
-        parts = [q for q in np.unique(np.concatenate([i[ks], j[ks]])) if free[q]]
-        c = 0
-        while any(c in used[q] for q in parts):
-            c += 1
+    groups = [np.unique(np.concatenate([i[ks], j[ks]])) for _, ks in members]
+    for (_, ks), c in zip(members, _first_fit(groups, free)):
         colour[ks] = c
-        for q in parts:
-            used[q].add(c)
     rest = star < 0
     colour[rest] = greedy_colouring(i[rest], j[rest], n, fixed)
     return star, colour
@@ -245,10 +239,16 @@ def greedy_colouring_any(particles: np.ndarray, n: int, fixed=None) -> np.ndarra
     colour not used at any of the constraint's particles that are not `fixed` (a fixed particle never moves, so
     any number of constraints of one colour may share it)."""
     free = np.ones(n, bool) if fixed is None else ~np.asarray(fixed, bool)
-    used = [set() for _ in range(n)]
-    colour = np.empty(len(particles), np.int64)
-    for r, row in enumerate(np.asarray(particles).tolist()):
-        ps = [p for p in row if free[p]]
+    return _first_fit(np.asarray(particles).tolist(), free)
+
+
+def _first_fit(groups, free) -> np.ndarray:
+    """First-fit colouring of `groups` (each a sequence of particle indices), in order: each group gets the
+    smallest colour not yet used at any of its particles that are `free` (fixed ones may be shared)."""
+    used = [set() for _ in range(len(free))]
+    colour = np.empty(len(groups), np.int64)
+    for r, group in enumerate(groups):
+        ps = [int(p) for p in group if free[p]]
         c = 0
         while any(c in used[p] for p in ps):
             c += 1
