@@ -132,6 +132,7 @@ class Rows(NamedTuple):
     i: Array = None
     j: Array = None
     near: Array = None
+    warm: Array = None
 
 
 def direction(d):
@@ -402,7 +403,18 @@ ROUNDING = 64
 #: reached z = 58 m after 2 s with PGS(10, substeps=4)).
 PUSH_OUT_SPEED = 3.0
 
-def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h):
+#: Slop (a fraction of the contact distance: r_i + r_j for a pair, r for an obstacle), Box2D's linear slop
+#: (b2_linearSlop, 5 mm for bodies of about a metre). Overlaps up to it are left to the contact: the Baumgarte
+#: term pushes out only the overlap beyond it, and the position safety pass projects to it, not to C = 0; a
+#: contact whose gap is within it either way is warm-started (`Rows.warm`). Without it a pile never rests: the
+#: position pass left resting contacts at C = 0, within rounding of touching, so that the next step took 40%
+#: of the disc box's pushing pairs as separated and solved them cold (no warm start, no friction), and the
+#: Baumgarte term pushed every overlap out at velocity level while the position pass removed it too
+#: (docs/contacts.md, piles).
+CONTACT_SLOP = 0.005
+
+
+def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h, slop=0.0):
     """Target velocity of contacts with gap C (`_gap`: > 0 separated, <= 0 touching), normal velocity vn0 at
     the start of the step and vn1 after the external forces, and an impact at `toi` where `impact` (module
     docstring; a contact within rounding of touching, C = 0, may be an impact at toi ~ 0).
@@ -419,7 +431,7 @@ def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h):
     u = -(vn0 + dv * toi / h)
     bounce = jnp.where(u > cs.threshold, cs.restitution * u, 0)
     rest = dv * (h - toi) / h
-    push = jnp.minimum(-beta * C / h, PUSH_OUT_SPEED)
+    push = jnp.minimum(-beta * jnp.minimum(C + slop, 0) / h, PUSH_OUT_SPEED)
 
     def target(after):
         return jnp.where(impact, after, jnp.where(C > 0, -C_spec / h, jnp.maximum(after, push)))
@@ -554,23 +566,24 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None):
         pairs = pairs[:3] + (pairs[3] & live, pairs[4] & live, pairs[5], tol)
     obs, pairs = _first_impacts(ct, obs, pairs, xf.shape[1], index)
 
-    def finish(geometry, vn0, vn1, winv, k):
+    def finish(geometry, vn0, vn1, winv, k, Rd):
         n, C, C_n, _, impact, toi, tol = geometry
         toi = jnp.where(impact, toi, 0)
         gap = _gap(C, tol)
-        target, target_c = _targets(gap, C_n, vn0, vn1, impact, toi, cs, beta, h)
-        return Rows(n, target, k, winv, toi, gap, target_c, near=C <= tol)
+        slop = CONTACT_SLOP * Rd
+        target, target_c = _targets(gap, C_n, vn0, vn1, impact, toi, cs, beta, h, slop)
+        return Rows(n, target, k, winv, toi, gap, target_c, near=C <= tol, warm=(gap <= slop) | impact)
 
     if obs is not None:
         n = obs[0]
         winv = jnp.broadcast_to(w[0], obs[1].shape)
-        obs = finish(obs, jnp.sum(n * v0[None], 1), jnp.sum(n * v[None], 1), winv, L.safe_reciprocal(winv))
+        obs = finish(obs, jnp.sum(n * v0[None], 1), jnp.sum(n * v[None], 1), winv, L.safe_reciprocal(winv), cs.radius)
     if pairs is not None:
         n = pairs[0]
         winv = wf[ia] + wf[ja]
         k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype)
         vn0, vn1 = (jnp.sum(n * (a[:, ja] - a[:, ia]), 0) for a in (v0f, vf))
-        pairs = finish(pairs, vn0, vn1, winv, k)
+        pairs = finish(pairs, vn0, vn1, winv, k, cs.radius_flat[ia] + cs.radius_flat[ja])
         if index is not None:
             pairs = pairs._replace(i=ia, j=partners)
     return obs, pairs
@@ -686,7 +699,7 @@ def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, 
     ct, mu = cs.ct, cs.friction
 
     def project(f: Rows, ln, lt):
-        active = ((f.gap <= 0) | (f.toi > 0)) & (f.k > 0)
+        active = f.warm & (f.k > 0)
         ln = jnp.maximum(ln, 0) * factor * active.astype(ln.dtype)
         lt = (lt - f.n * jnp.sum(lt * f.n, 0)) * factor
         length, inv = L.safe_length(lt)
@@ -827,12 +840,12 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
         for p in range(ct.n_planes):
             nrm = cs.plane_normal[p].reshape((dim,) + (1,) * (x.ndim - 1))
             C = jnp.sum(nrm * x, 0) - cs.plane_offset[p] - r
-            x = x + nrm * (jnp.maximum(-C, 0) * (k > 0))
+            x = x + nrm * (jnp.maximum(-C - CONTACT_SLOP * r, 0) * (k > 0))
         for q in range(ct.n_spheres):
             d = x - cs.sphere_centre[q].reshape((dim,) + (1,) * (x.ndim - 1))
             dist, n = direction(d)
             C = dist - cs.sphere_radius[q] - r
-            x = x + n * (jnp.maximum(-C, 0) * (k > 0))
+            x = x + n * (jnp.maximum(-C - CONTACT_SLOP * r, 0) * (k > 0))
         return x
 
     def pair_rounds(x):
@@ -844,7 +857,7 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
             i, j = ia[q], ja[q]
             dist, n = direction(xf[:, j] - xf[:, i])
             winv = wf[i] + wf[j]
-            push = jnp.maximum(rf[i] + rf[j] - dist, 0) * L.safe_reciprocal(winv) * valid[q]
+            push = jnp.maximum((1 - CONTACT_SLOP) * (rf[i] + rf[j]) - dist, 0) * L.safe_reciprocal(winv) * valid[q]
             return _pair_apply(ct, xf, q, wf[i], wf[j], n * push)
 
         return lax.fori_loop(0, ct.rounds, one_round, x.reshape(dim, -1)).reshape(shape)
@@ -856,7 +869,7 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
         def one_slot(s, xf):                      # slot by slot, as grid_pass
             j = jnp.maximum(pairs.j[:, s], 0)
             dist, n = direction(xf[:, j] - xf)
-            over = jnp.maximum(rf + rf[j] - dist, 0) * (pairs.k[:, s] > 0)
+            over = jnp.maximum((1 - CONTACT_SLOP) * (rf + rf[j]) - dist, 0) * (pairs.k[:, s] > 0)
             hit = (over > 0).astype(xf.dtype)
             c = jnp.zeros_like(wf).at[me].add(hit).at[j].add(hit)
             P = n * (over * L.safe_reciprocal(c * wf + c[j] * wf[j]))
