@@ -242,7 +242,7 @@ def grid_step(sys, x, v, h, solve):
 
 
 def contact_begin(sys, x, v, lam_ws, beta, h, split: bool, warm: bool, factor=1.0, gradient: bool = True,
-                  found=None):
+                  found=None, slop=0.0):
     """Gravity, the rods' frames and biases (no Baumgarte bias when `split`), the contact rows, and the warm
     start of rods and contacts (scaled by `factor`; no gradient through it unless `gradient`). A grid model
     passes its candidate pairs `found` = (partners, overflow) (`grid_step`).
@@ -255,7 +255,7 @@ def contact_begin(sys, x, v, lam_ws, beta, h, split: bool, warm: bool, factor=1.
     fr = frames(sys, x)
     bias = velocity_bias(topo, fr, jnp.zeros((), x.dtype), h, v) if split else velocity_bias(topo, fr, beta, h)
     partners, overflow = (None, None) if found is None else found
-    obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h, partners)
+    obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h, partners, slop)
     if not warm:
         lam, imp = tuple(jnp.zeros_like(f.C) for f in fr), contact.zero_impulses(topo, cs.ct, x.dtype)
     else:
@@ -296,14 +296,14 @@ def restitution_phases(sys, v_free, obs, pairs, iterations: int, carry, body):
     return jax.tree.map(mix, compressed, bounced)
 
 
-def contact_end(sys, x, v, v_free, obs, pairs, imp, h, passes=1, rods_pass=None):
+def contact_end(sys, x, v, v_free, obs, pairs, imp, h, passes=1, rods_pass=None, slop=0.0):
     """New positions: x + h v with the time-of-impact correction (a particle whose velocity changed at tau within
     the step moved at its old velocity until then: x' = x + tau v_free + (h - tau) v'), then `rods_pass` (split
     impulses' position pass of the rods, x -> x, or None), then the position safety pass of the contacts
-    (`passes`: see contact.project_overlaps)."""
+    (`passes`, `slop`: see contact.project_overlaps)."""
     cs = sys.contact
     dx = -contact.impact_times(cs, obs, pairs, imp, x.shape) * (v - v_free)
     x = x + h * v + dx
     if rods_pass is not None:
         x = rods_pass(x)
-    return contact.project_overlaps(cs, sys.w, x, passes, pairs)
+    return contact.project_overlaps(cs, sys.w, x, passes, pairs, slop)

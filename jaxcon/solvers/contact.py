@@ -120,7 +120,9 @@ class Rows(NamedTuple):
     winv, time of impact `toi` (0 unless an impact happens within the step), gap, and `target_c`: the target
     without restitution (the compression phase; None for solvers that do not split the solve). Grid pair rows
     also carry their particles i, j [n, K] (internal indices, j = -1 for an empty slot); None otherwise. `near`:
-    touching or within rounding of it (an impact of such a contact is one of a touching contact, `_gap`)."""
+    touching or within rounding of it (an impact of such a contact is one of a touching contact, `_gap`).
+    `warm`: the rows the warm start applies last step's impulse to (touching, an impact, or a pair within the
+    solver's slop of touching)."""
 
     n: Array
     target: Array
@@ -243,6 +245,10 @@ GRID_SCAN = 2
 #: was 0.86% of a diameter with 8 passes, 0.30% with 16 and 0.12% with 32 (all pairs: 0.03% with 8); a pass
 #: costs K small steps over n particles, against n - 1 rounds for all pairs.
 GRID_OVERLAP_PASSES = 32
+
+#: A grid model's position passes stop after one that moved no particle by more than this fraction of the slop
+#: times the smallest radius (`project_overlaps`).
+GRID_PASS_STOP = 0.01
 
 _HASH = np.array([73856093, 19349663, 83492791], np.uint32)
 
@@ -403,14 +409,14 @@ ROUNDING = 64
 #: reached z = 58 m after 2 s with PGS(10, substeps=4)).
 PUSH_OUT_SPEED = 3.0
 
-#: Slop (a fraction of the contact distance: r_i + r_j for a pair, r for an obstacle), Box2D's linear slop
-#: (b2_linearSlop, 5 mm for bodies of about a metre). Overlaps up to it are left to the contact: the Baumgarte
-#: term pushes out only the overlap beyond it, and the position safety pass projects to it, not to C = 0; a
-#: contact whose gap is within it either way is warm-started (`Rows.warm`). Without it a pile never rests: the
-#: position pass left resting contacts at C = 0, within rounding of touching, so that the next step took 40%
-#: of the disc box's pushing pairs as separated and solved them cold (no warm start, no friction), and the
-#: Baumgarte term pushed every overlap out at velocity level while the position pass removed it too
-#: (docs/contacts.md, piles).
+#: PGS's default contact slop (`PGS.contact_slop`), a fraction of the contact distance (r_i + r_j for a pair, r
+#: for an obstacle): Box2D's linear slop (b2_linearSlop, 5 mm for bodies of about a metre). Overlaps up to the
+#: slop are left to the contact: the Baumgarte term pushes out only the overlap beyond it, the position safety
+#: pass projects onto it (not onto C = 0), and a pair whose gap is within it either way is warm-started. Without
+#: it a pile never rests (docs/contacts.md, piles at rest): the position pass left resting contacts at C = 0,
+#: within rounding of touching, so that the next step took 40% of the disc box's pushing pairs as separated and
+#: solved them cold (no warm start, hence no friction either), while the Baumgarte term pushed every overlap
+#: out at velocity level that the position pass removed as well.
 CONTACT_SLOP = 0.005
 
 
@@ -425,7 +431,8 @@ def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h, slop=
     continuous where the impact moves from one step to the next (at toi = h and toi = 0 both sides give the
     same state), and gives the time-of-impact dependence of u its right derivative (du/dC = a / |vn1|).
     A separated contact that is not an impact gets the speculative target -C_spec / h, C_spec its gap along
-    the row's normal. A touching one pushes its overlap out at -beta C / h, at most `PUSH_OUT_SPEED`.
+    the row's normal. A touching one pushes its overlap beyond `slop` (m) out at -beta (C + slop) / h, at most
+    `PUSH_OUT_SPEED`.
     Returns (target, target without restitution)."""
     dv = vn1 - vn0
     u = -(vn0 + dv * toi / h)
@@ -542,10 +549,11 @@ def _first_impacts(ct, obs, pairs, n_particles, index=None):
     return obs, pairs
 
 
-def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None):
+def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None, slop=0.0):
     """Contact rows at the start of a (sub)step: (obstacle Rows or None, pair Rows or None). `v0` is the
     velocity at the start of the step, `v` after the external forces and before any impulse. A grid model
-    passes its `partners` [n, K] (from `neighbours`)."""
+    passes its `partners` [n, K] (from `neighbours`). `slop`: the solver's contact slop, a fraction of the
+    contact distance (`CONTACT_SLOP`; 0: none)."""
     ct, dim = cs.ct, x.shape[0]
     xf, vf, v0f, wf = x.reshape(dim, -1), v.reshape(dim, -1), v0.reshape(dim, -1), w.reshape(-1)
     obs = _obstacle_geometry(cs, x, v, h) if ct.n_obstacles else None
@@ -566,24 +574,30 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None):
         pairs = pairs[:3] + (pairs[3] & live, pairs[4] & live, pairs[5], tol)
     obs, pairs = _first_impacts(ct, obs, pairs, xf.shape[1], index)
 
-    def finish(geometry, vn0, vn1, winv, k, Rd):
+    def finish(geometry, vn0, vn1, winv, k, distance, window):
         n, C, C_n, _, impact, toi, tol = geometry
         toi = jnp.where(impact, toi, 0)
         gap = _gap(C, tol)
-        slop = CONTACT_SLOP * Rd
-        target, target_c = _targets(gap, C_n, vn0, vn1, impact, toi, cs, beta, h, slop)
-        return Rows(n, target, k, winv, toi, gap, target_c, near=C <= tol, warm=(gap <= slop) | impact)
+        s = slop * distance
+        target, target_c = _targets(gap, C_n, vn0, vn1, impact, toi, cs, beta, h, s)
+        # Warm-started: touching, impacts, and pairs within the slop of touching either way (a disc of a pile that
+        # lifts off its neighbour by less than the slop keeps the impulse it leant on it with; measured in
+        # docs/contacts.md). Obstacles keep gap <= 0: warm-starting those within the slop as well brought the pile
+        # to rest sooner (0.003 against 0.018 m/s at 8 s) but the float32 drape's gradients 1.9% off float64.
+        warm = impact | (gap <= (s if window else 0))
+        return Rows(n, target, k, winv, toi, gap, target_c, near=C <= tol, warm=warm)
 
     if obs is not None:
         n = obs[0]
         winv = jnp.broadcast_to(w[0], obs[1].shape)
-        obs = finish(obs, jnp.sum(n * v0[None], 1), jnp.sum(n * v[None], 1), winv, L.safe_reciprocal(winv), cs.radius)
+        obs = finish(obs, jnp.sum(n * v0[None], 1), jnp.sum(n * v[None], 1), winv, L.safe_reciprocal(winv),
+                     cs.radius, False)
     if pairs is not None:
         n = pairs[0]
         winv = wf[ia] + wf[ja]
         k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype)
         vn0, vn1 = (jnp.sum(n * (a[:, ja] - a[:, ia]), 0) for a in (v0f, vf))
-        pairs = finish(pairs, vn0, vn1, winv, k, cs.radius_flat[ia] + cs.radius_flat[ja])
+        pairs = finish(pairs, vn0, vn1, winv, k, cs.radius_flat[ia] + cs.radius_flat[ja], True)
         if index is not None:
             pairs = pairs._replace(i=ia, j=partners)
     return obs, pairs
@@ -661,36 +675,44 @@ def _slot(a, s):
     return None if a is None else jnp.take(a, s, axis=-1)
 
 
+def slot_major(a):
+    """A grid array [..., n, K] as [K, ..., n] (None stays None): what `lax.scan` over the slots takes."""
+    return None if a is None else jnp.moveaxis(a, -1, 0)
+
+
 def grid_pass(cs: ContactSystem, w, v, pairs: Rows, pn, pt, row=None, extra=None):
     """One pass over a grid model's pair rows, slot by slot: the rows of one slot (one per particle, whose
     partners may repeat) are solved together from the same v, relaxed by mass splitting (each takes the
     effective mass 1 / (c_i w_i + c_j w_j), c the slot's rows that push at each particle, as
-    jaxcon.solvers.contact_jacobi does), and the slots follow one another Gauss-Seidel-style. Returns
-    (v, pair_n, pair_t)."""
+    jaxcon.solvers.contact_jacobi does), and the slots follow one another Gauss-Seidel-style, a `lax.scan`
+    over the slots (slot-major copies of the rows, `slot_major`). A slot no row uses (the grid fills each
+    particle's slots from the first, so the last ones are often empty everywhere) is skipped (`lax.cond`: the
+    same values and derivatives). Returns (v, pair_n, pair_t)."""
     dim, shape = v.shape[0], v.shape
     wf = w.reshape(-1)
-    n, K = pn.shape
-    me = jnp.arange(n)
 
-    def one_slot(s, carry):
-        vf, pn, pt = carry
-        f = Rows(*(_slot(a, s) for a in pairs))
-        j = jnp.maximum(f.j, 0)
-        ln, lt = pn[:, s], pt[:, :, s]
-        vrel = vf[:, j] - vf
-        vn = jnp.sum(vrel * f.n, 0)
-        act = (((ln > 0) | (ln + (f.target - vn) * f.k > 0)) & (f.k > 0)).astype(vf.dtype)
-        c = jnp.zeros((n,), vf.dtype).at[me].add(act).at[j].add(act)
-        f = f._replace(k=L.safe_reciprocal(c * wf + c[j] * wf[j]) * (f.k > 0).astype(vf.dtype))
-        if row is None:
-            P, ln, lt = _solve_row(vrel, f, cs.friction, ln, lt)
-        else:
-            P, ln, lt = row(vrel, f, cs.friction, ln, lt, None if extra is None else tuple(_slot(a, s) for a in extra))
-        vf = vf.at[:, j].add(wf[j] * P) - wf * P
-        return vf, pn.at[:, s].set(ln), pt.at[:, :, s].set(lt)
+    def one_slot(vf, xs):
+        f, ln, lt, ex = xs
 
-    vf, pn, pt = lax.fori_loop(0, K, one_slot, (v.reshape(dim, -1), pn, pt))
-    return vf.reshape(shape), pn, pt
+        def solve(vf):
+            j = jnp.maximum(f.j, 0)
+            vrel = vf[:, j] - vf
+            vn = jnp.sum(vrel * f.n, 0)
+            act = (((ln > 0) | (ln + (f.target - vn) * f.k > 0)) & (f.k > 0)).astype(vf.dtype)
+            c = act + jnp.zeros_like(act).at[j].add(act)
+            g = f._replace(k=L.safe_reciprocal(c * wf + c[j] * wf[j]) * (f.k > 0).astype(vf.dtype))
+            if row is None:
+                P, new_n, new_t = _solve_row(vrel, g, cs.friction, ln, lt)
+            else:
+                P, new_n, new_t = row(vrel, g, cs.friction, ln, lt, ex)
+            return vf.at[:, j].add(wf[j] * P) - wf * P, (new_n, new_t)
+
+        return lax.cond(jnp.any(f.k > 0), solve, lambda vf: (vf, (ln, lt)), vf)
+
+    xs = (Rows(*(slot_major(a) for a in pairs)), slot_major(pn), slot_major(pt),
+          None if extra is None else tuple(slot_major(a) for a in extra))
+    vf, (pn, pt) = lax.scan(one_slot, v.reshape(dim, -1), xs)
+    return vf.reshape(shape), jnp.moveaxis(pn, 0, -1), jnp.moveaxis(pt, 0, -1)
 
 
 def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, factor=1.0):
@@ -810,7 +832,8 @@ def impact_times(cs: ContactSystem, obs: Rows, pairs: Rows, imp: Impulses, shape
         across = jnp.where(touching, jnp.maximum(t[ia], t[ja]), 0)
         return t.at[ia].max(across).at[ja].max(across)
 
-    flat = lax.fori_loop(0, TOI_PASSES, carry, flat)
+    # Without an impact nothing is carried (the same values and derivatives): a pile at rest skips the passes.
+    flat = lax.cond(jnp.any(flat > 0), lambda t: lax.fori_loop(0, TOI_PASSES, carry, t), lambda t: t, flat)
     return flat.reshape((1,) + shape[1:])
 
 
@@ -822,7 +845,7 @@ def impact_times(cs: ContactSystem, obs: Rows, pairs: Rows, imp: Impulses, shape
 OVERLAP_PASSES = 8
 
 
-def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pairs: Optional[Rows] = None):
+def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pairs: Optional[Rows] = None, slop=0.0):
     """Move overlapping contacts apart at position level (non-linear Gauss-Seidel, as Box2D v2's position
     solver), `passes` times (default: `OVERLAP_PASSES` with pairs, `GRID_OVERLAP_PASSES` with a grid, else 1):
     pair rounds, then obstacles (which cannot move, so they have the last word; a heavy ball on light ones
@@ -830,7 +853,8 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
     are not touched, so no kinetic energy or momentum is added; it only acts where the velocity solve left an
     overlap (an under-converged cluster, or the time-of-impact correction of a particle whose velocity was
     also changed by a later contact). A grid model's pairs (the rows `pairs` of this step) are projected
-    slot by slot instead (the overlaps of one slot together, each split between the overlaps at its particles)."""
+    slot by slot instead (the overlaps of one slot together, each split between the overlaps at its particles).
+    `slop`: the overlaps are projected onto `slop` times the contact distance, not onto 0 (`CONTACT_SLOP`)."""
     ct = cs.ct
     dim, shape = x.shape[0], x.shape
     r = cs.radius[0]
@@ -840,12 +864,12 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
         for p in range(ct.n_planes):
             nrm = cs.plane_normal[p].reshape((dim,) + (1,) * (x.ndim - 1))
             C = jnp.sum(nrm * x, 0) - cs.plane_offset[p] - r
-            x = x + nrm * (jnp.maximum(-C - CONTACT_SLOP * r, 0) * (k > 0))
+            x = x + nrm * (jnp.maximum(-C - slop * r, 0) * (k > 0))
         for q in range(ct.n_spheres):
             d = x - cs.sphere_centre[q].reshape((dim,) + (1,) * (x.ndim - 1))
             dist, n = direction(d)
             C = dist - cs.sphere_radius[q] - r
-            x = x + n * (jnp.maximum(-C - CONTACT_SLOP * r, 0) * (k > 0))
+            x = x + n * (jnp.maximum(-C - slop * r, 0) * (k > 0))
         return x
 
     def pair_rounds(x):
@@ -857,25 +881,29 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
             i, j = ia[q], ja[q]
             dist, n = direction(xf[:, j] - xf[:, i])
             winv = wf[i] + wf[j]
-            push = jnp.maximum((1 - CONTACT_SLOP) * (rf[i] + rf[j]) - dist, 0) * L.safe_reciprocal(winv) * valid[q]
+            push = jnp.maximum((1 - slop) * (rf[i] + rf[j]) - dist, 0) * L.safe_reciprocal(winv) * valid[q]
             return _pair_apply(ct, xf, q, wf[i], wf[j], n * push)
 
         return lax.fori_loop(0, ct.rounds, one_round, x.reshape(dim, -1)).reshape(shape)
 
     def grid_pairs(x):
         wf, rf = w.reshape(-1), cs.radius_flat
-        me = jnp.arange(wf.shape[0])
 
-        def one_slot(s, xf):                      # slot by slot, as grid_pass
-            j = jnp.maximum(pairs.j[:, s], 0)
-            dist, n = direction(xf[:, j] - xf)
-            over = jnp.maximum((1 - CONTACT_SLOP) * (rf + rf[j]) - dist, 0) * (pairs.k[:, s] > 0)
-            hit = (over > 0).astype(xf.dtype)
-            c = jnp.zeros_like(wf).at[me].add(hit).at[j].add(hit)
-            P = n * (over * L.safe_reciprocal(c * wf + c[j] * wf[j]))
-            return xf.at[:, j].add(wf[j] * P) - wf * P
+        def one_slot(xf, xs):                     # slot by slot, as grid_pass (empty slots skipped)
+            jj, kk = xs
 
-        return lax.fori_loop(0, pairs.j.shape[1], one_slot, x.reshape(dim, -1)).reshape(shape)
+            def project(xf):
+                j = jnp.maximum(jj, 0)
+                dist, n = direction(xf[:, j] - xf)
+                over = jnp.maximum((1 - slop) * (rf + rf[j]) - dist, 0) * (kk > 0)
+                hit = (over > 0).astype(xf.dtype)
+                c = hit + jnp.zeros_like(hit).at[j].add(hit)
+                P = n * (over * L.safe_reciprocal(c * wf + c[j] * wf[j]))
+                return xf.at[:, j].add(wf[j] * P) - wf * P
+
+            return lax.cond(jnp.any(kk > 0), project, lambda xf: xf, xf), None
+
+        return lax.scan(one_slot, x.reshape(dim, -1), (slot_major(pairs.j), slot_major(pairs.k)))[0].reshape(shape)
 
     def one_pass(_, x):
         if ct.n_pairs:
@@ -886,7 +914,22 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
 
     if passes is None:
         passes = GRID_OVERLAP_PASSES if ct.has_grid else OVERLAP_PASSES if ct.n_pairs else 1
-    return one_pass(0, x) if passes == 1 else lax.fori_loop(0, passes, one_pass, x)
+    if passes == 1:
+        return one_pass(0, x)
+    if not ct.has_grid:
+        return lax.fori_loop(0, passes, one_pass, x)
+    # A grid model's passes stop once one moves no particle by more than GRID_PASS_STOP of the slop (of the
+    # smallest radius; with no slop, once one moves nothing): a pile at rest, whose velocity solve leaves no
+    # overlap beyond the slop, takes one pass instead of GRID_OVERLAP_PASSES.
+    limit = lax.stop_gradient(GRID_PASS_STOP * slop * jnp.min(cs.radius_flat))
+
+    def gated(_, carry):
+        def run(x):
+            y = one_pass(0, x)
+            return y, lax.stop_gradient(jnp.max(jnp.abs(y - x))) > limit
+        return lax.cond(carry[1], run, lambda x: (x, carry[1]), carry[0])
+
+    return lax.fori_loop(0, passes, gated, (x, jnp.ones((), bool)))[0]
 
 
 def zero_impulses(topo: Topology, ct: ContactTopology, dtype) -> Impulses:
