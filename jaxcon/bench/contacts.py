@@ -182,7 +182,7 @@ def run_pymunk(n, seconds=SECONDS):
     return out
 
 
-PEERS = (("box2d", "Box2D", run_box2d), ("pymunk", "pymunk", run_pymunk))
+PEERS = (("Box2D", "Box2D", run_box2d), ("pymunk", "pymunk", run_pymunk))
 
 
 def main(sizes=(64, 256, 1024), seconds=SECONDS):
