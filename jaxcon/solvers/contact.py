@@ -137,13 +137,35 @@ class Rows(NamedTuple):
     warm: Array = None
 
 
+def _dot(a, b):
+    """Sum of a * b over the leading (dim) axis, written out component by component (`layout.dot0`). On XLA's
+    CPU backend `jnp.sum(a * b, 0)` of gathered operands ([dim, n, M] from x[:, j]) becomes a reduction kernel
+    that gathers again for every element: the grid search's distance test of the 1024-disc box took 6.5 ms
+    that way and 0.26 ms written out."""
+    return L.dot0(a, b)
+
+
+def _length(d):
+    """`layout.safe_length` with `_dot`: (length, 1 / length) along the leading axis, both 0 at zero length."""
+    d2 = _dot(d, d)
+    ok = d2 > L.min_length2(d.dtype)
+    inv = jnp.where(ok, lax.rsqrt(jnp.where(ok, d2, 1)), 0)
+    return d2 * inv, inv
+
+
+def _norm(d):
+    """`layout.safe_norm` along the leading axis with `_dot`: (length, unit direction, 0 at zero length)."""
+    dist, inv = _length(d)
+    return dist, d * inv
+
+
 def direction(d):
     """(length [...], unit direction [dim, ...]) of contact vectors d [dim, ...] (from the first body to the
     second) as `layout.safe_norm`, except that where d is 0 (coincident centres: a particle started at a
     sphere's centre, or on another particle) the direction is +e_last, the last axis (y in 2-D, z in 3-D: up
     for the default gravity), so that the overlap is still pushed out: the second body upwards. Its derivative
     there is 0."""
-    dist, n = L.safe_norm(d, axis=0)
+    dist, n = _norm(d)
     up = jnp.zeros((d.shape[0],) + (1,) * (d.ndim - 1), d.dtype).at[-1].set(1)
     return dist, jnp.where(dist > 0, n, up)
 
@@ -158,7 +180,7 @@ def overlap_normal(d0, d, R):
     dist0, n0 = direction(d0)
     dist, n = direction(d)
     deep = dist0 - R < -_tolerance(_magnitude(d0) + R)
-    return jnp.where(deep, n0, n), jnp.where(deep, jnp.sum(n0 * d, 0), dist) - R
+    return jnp.where(deep, n0, n), jnp.where(deep, _dot(n0, d), dist) - R
 
 
 # ---- layout --------------------------------------------------------------------------------------------------
@@ -247,8 +269,10 @@ GRID_SCAN = 2
 GRID_OVERLAP_PASSES = 32
 
 #: A grid model's position passes stop after one that moved no particle by more than this fraction of the slop
-#: times the smallest radius (`project_overlaps`).
-GRID_PASS_STOP = 0.01
+#: times the smallest radius (`project_overlaps`). Measured on the 1024-disc box (docs/contacts.md): 0.1 with
+#: the push-out beyond two slops (`PUSH_SLOPS`) rests by 5 s at 12 ms per step; 0.1 with the push-out beyond one
+#: slop did not rest in 8 s (1.1 m/s); 0.001 rested at 28 ms per step (most steps ran all 32 passes).
+GRID_PASS_STOP = 0.1
 
 _HASH = np.array([73856093, 19349663, 83492791], np.uint32)
 
@@ -281,7 +305,7 @@ def _spread(vf):
     """max |v - mean(v)| of velocities vf [dim, n]: |v_j - v_i| <= 2 spread (relative to the mean velocity, a
     pile falling as one keeps small cells)."""
     d = vf - jnp.mean(vf, axis=1, keepdims=True)
-    return jnp.sqrt(jnp.max(jnp.sum(d * d, 0)))
+    return jnp.sqrt(jnp.max(_dot(d, d)))
 
 
 def grid_search(cs: ContactSystem, x, v, h):
@@ -296,8 +320,8 @@ def grid_search(cs: ContactSystem, x, v, h):
 
     def close(jc):              # within the candidate distance (1 + GRID_SKIN)(r_i + r_j) + h |v_j - v_i|
         d, dv = xf[:, jc] - xf[:, :, None], vf[:, jc] - vf[:, :, None]
-        cut = (1 + GRID_SKIN) * (r[:, None] + r[jc]) + h * jnp.sqrt(jnp.sum(dv * dv, 0))
-        return jnp.sqrt(jnp.sum(d * d, 0)) < cut
+        cut = (1 + GRID_SKIN) * (r[:, None] + r[jc]) + h * jnp.sqrt(_dot(dv, dv))
+        return jnp.sqrt(_dot(d, d)) < cut
 
     return _select(cs, scan, close), scan
 
@@ -314,13 +338,14 @@ def _scan(ct: ContactTopology, xf, reach):
     c = jnp.clip(jnp.floor(xf / cell), -big, big).astype(jnp.int32)
     key = _cell_hash(c, table)
     order = jnp.argsort(key)
-    skey = key[order]
+    count = jnp.zeros((table,), jnp.int32).at[key].add(1)
+    start = jnp.cumsum(count) - count                 # each bucket's first position in the sorted order
     cands, missed = [], jnp.zeros((n,), jnp.int32)
     for off in itertools.product((-1, 0, 1), repeat=dim):
         qc = c + jnp.asarray(off, jnp.int32)[:, None]
         qk = _cell_hash(qc, table)
-        lo = jnp.searchsorted(skey, qk, side="left")
-        hi = jnp.searchsorted(skey, qk, side="right")
+        lo = start[qk]
+        hi = lo + count[qk]
         idx = lo[:, None] + jnp.arange(scan)[None]                   # [n, scan] positions in the sorted order
         j = order[jnp.minimum(idx, n - 1)]
         ok = (idx < hi[:, None]) & jnp.all(c[:, j] == qc[:, :, None], axis=0)
@@ -363,8 +388,8 @@ def path_search(cs: ContactSystem, x, x_end, h, scan):
     def close(jc):
         d0 = xf[:, jc] - xf[:, :, None]
         e = (xe[:, jc] - xe[:, :, None]) - d0
-        s = jnp.clip(-jnp.sum(d0 * e, 0) * L.safe_reciprocal(jnp.sum(e * e, 0)), 0, 1)
-        closest = jnp.sqrt(jnp.sum((d0 + s * e) ** 2, 0))
+        s = jnp.clip(-_dot(d0, e) * L.safe_reciprocal(_dot(e, e)), 0, 1)
+        closest = jnp.sqrt(_dot(d0 + s * e, d0 + s * e))
         R = r[:, None] + r[jc]
         return closest < R - _tolerance(_magnitude(xf[:, jc]) + _magnitude(xf)[:, None] + R)
 
@@ -411,13 +436,19 @@ PUSH_OUT_SPEED = 3.0
 
 #: PGS's default contact slop (`PGS.contact_slop`), a fraction of the contact distance (r_i + r_j for a pair, r
 #: for an obstacle): Box2D's linear slop (b2_linearSlop, 5 mm for bodies of about a metre). Overlaps up to the
-#: slop are left to the contact: the Baumgarte term pushes out only the overlap beyond it, the position safety
-#: pass projects onto it (not onto C = 0), and a pair whose gap is within it either way is warm-started. Without
+#: slop are left to the contact: the Baumgarte term pushes out only the overlap beyond `PUSH_SLOPS` of it, the
+#: position safety pass projects onto it (not onto C = 0), and a pair whose gap is within it either way is
+#: warm-started. Without
 #: it a pile never rests (docs/contacts.md, piles at rest): the position pass left resting contacts at C = 0,
 #: within rounding of touching, so that the next step took 40% of the disc box's pushing pairs as separated and
 #: solved them cold (no warm start, hence no friction either), while the Baumgarte term pushed every overlap
 #: out at velocity level that the position pass removed as well.
 CONTACT_SLOP = 0.005
+
+#: The Baumgarte term of a touching contact pushes out only the overlap beyond PUSH_SLOPS slops, while the position
+#: pass projects onto one slop: what the position pass leaves within its stopping tolerance (`GRID_PASS_STOP`) is
+#: not turned into velocity (on the 1024-disc box, the push-out beyond one slop kept the pile moving at 1.1 m/s).
+PUSH_SLOPS = 2.0
 
 
 def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h, slop=0.0):
@@ -480,17 +511,17 @@ def _swept(d, u, R, h, tol):
     dist, n0 = direction(d)
     C = dist - R
     Ci, Ri = _gap(C, tol), R - tol
-    uu = jnp.sum(u * u, 0)
-    du = jnp.sum(d * u, 0)
+    uu = _dot(u, u)
+    du = _dot(d, u)
     disc = du * du - uu * (Ci * (dist + Ri))
     hit = (Ci > 0) & (du < 0) & (disc > 0)
     root = jnp.sqrt(jnp.where(hit, disc, 1))
     t = Ci * (dist + Ri) / jnp.where(hit, root - du, 1)
     hit = hit & (t < h)
     toi = jnp.where(hit, t, 0)
-    _, n_hit = L.safe_norm(d + toi * u, axis=0)
+    _, n_hit = _norm(d + toi * u)
     n = jnp.where(hit, n_hit, n0)
-    return n, C, jnp.sum(n * d, 0) - R, hit, hit, toi
+    return n, C, _dot(n, d) - R, hit, hit, toi
 
 
 def _magnitude(a):
@@ -579,7 +610,7 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None, slop=0.0):
         toi = jnp.where(impact, toi, 0)
         gap = _gap(C, tol)
         s = slop * distance
-        target, target_c = _targets(gap, C_n, vn0, vn1, impact, toi, cs, beta, h, s)
+        target, target_c = _targets(gap, C_n, vn0, vn1, impact, toi, cs, beta, h, PUSH_SLOPS * s)
         # Warm-started: touching, impacts, and pairs within the slop of touching either way (a disc of a pile that
         # lifts off its neighbour by less than the slop keeps the impulse it leant on it with; measured in
         # docs/contacts.md). Obstacles keep gap <= 0: warm-starting those within the slop as well brought the pile
@@ -596,7 +627,7 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None, slop=0.0):
         n = pairs[0]
         winv = wf[ia] + wf[ja]
         k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype)
-        vn0, vn1 = (jnp.sum(n * (a[:, ja] - a[:, ia]), 0) for a in (v0f, vf))
+        vn0, vn1 = (_dot(n, a[:, ja] - a[:, ia]) for a in (v0f, vf))
         pairs = finish(pairs, vn0, vn1, winv, k, cs.radius_flat[ia] + cs.radius_flat[ja], True)
         if index is not None:
             pairs = pairs._replace(i=ia, j=partners)
@@ -606,7 +637,7 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None, slop=0.0):
 def _solve_row(vrel, f: Rows, mu, ln, lt):
     """One contact row: normal impulse (clamped >= 0), then friction (clamped to the disc mu lam_n). Returns
     (impulse change P [dim, ...] on the second body, new lam_n, new lam_t)."""
-    vn = jnp.sum(vrel * f.n, 0)
+    vn = _dot(vrel, f.n)
     new_n = jnp.maximum(ln + (f.target - vn) * f.k, 0)
     return finish_row(vrel, f, mu, ln, new_n, lt)
 
@@ -616,9 +647,9 @@ def finish_row(vrel, f: Rows, mu, ln, new_n, lt):
     velocity after that impulse, clamped to the disc mu new_n. Returns (P, new_n, new_t) as `_solve_row`."""
     dn = new_n - ln
     vrel = vrel + (f.winv * dn) * f.n
-    vt = vrel - f.n * jnp.sum(vrel * f.n, 0)
+    vt = vrel - f.n * _dot(vrel, f.n)
     new_t = lt - vt * f.k
-    length, inv = L.safe_length(new_t)
+    length, inv = _length(new_t)
     limit = mu * new_n
     new_t = new_t * jnp.where(length >= limit, limit * inv, 1)
     return f.n * dn + (new_t - lt), new_n, new_t
@@ -697,7 +728,7 @@ def grid_pass(cs: ContactSystem, w, v, pairs: Rows, pn, pt, row=None, extra=None
         def solve(vf):
             j = jnp.maximum(f.j, 0)
             vrel = vf[:, j] - vf
-            vn = jnp.sum(vrel * f.n, 0)
+            vn = _dot(vrel, f.n)
             act = (((ln > 0) | (ln + (f.target - vn) * f.k > 0)) & (f.k > 0)).astype(vf.dtype)
             c = act + jnp.zeros_like(act).at[j].add(act)
             g = f._replace(k=L.safe_reciprocal(c * wf + c[j] * wf[j]) * (f.k > 0).astype(vf.dtype))
@@ -723,8 +754,8 @@ def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, 
     def project(f: Rows, ln, lt):
         active = f.warm & (f.k > 0)
         ln = jnp.maximum(ln, 0) * factor * active.astype(ln.dtype)
-        lt = (lt - f.n * jnp.sum(lt * f.n, 0)) * factor
-        length, inv = L.safe_length(lt)
+        lt = (lt - f.n * _dot(lt, f.n)) * factor
+        length, inv = _length(lt)
         limit = mu * ln
         return ln, lt * jnp.where(length >= limit, limit * inv, 1) * active.astype(ln.dtype)
 

@@ -74,7 +74,7 @@ class PGS(Solver):
       contact_slop: the overlap, as a fraction of the contact distance (r_i + r_j; r for a plane or sphere),
         that contacts keep without being pushed out (Box2D's linear slop), a differentiable leaf in [0, 0.5];
         default `contact.CONTACT_SLOP` = 0.005, half a percent of a diameter. The Baumgarte term pushes out
-        only the overlap beyond it, the position safety pass projects onto it, and pairs within it of touching
+        only the overlap beyond two of it, the position safety pass projects onto it, and pairs within it of touching
         are warm-started: what lets a pile come to rest (docs/contacts.md, piles at rest). 0 is the method
         before (resting contacts at C = 0, solved cold every other step).
       warm_start_gradient: if False, no gradient flows through the warm-start impulses (static). The forward
