@@ -98,14 +98,15 @@ def _steps(seconds):
 
 
 def run_jaxcon(n, seconds=SECONDS, solver=None, **scene):
-    import jaxcon as jc
+    from jaxcon.core.sim import rollout
     from jaxcon.scenes import disc_box, disc_box_layout
+    from jaxcon.solvers.pgs import PGS
 
-    solver = jc.PGS(10) if solver is None else solver
+    solver = PGS(10) if solver is None else solver
     model, state = disc_box(n, dtype=np.float32, **scene)
     _, width = disc_box_layout(n)
     out = _Run("jaxcon", f"PGS({solver.iterations}) grid float32")
-    fn = jax.jit(lambda s: jc.rollout(model, s, solver, DT, CHUNK, save_every=CHUNK)[0])
+    fn = jax.jit(lambda s: rollout(model, s, solver, DT, CHUNK, save_every=CHUNK)[0])
     t0 = time.perf_counter()
     compiled = fn.lower(state).compile()
     out.compile_s = time.perf_counter() - t0
