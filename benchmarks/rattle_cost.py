@@ -8,8 +8,8 @@ import jax
 import numpy as np
 
 import jaxcon as jc
-from jaxcon import _reference as ref
-from jaxcon._cli import compile_and_time
+from jaxcon.bench.references import scipy_ode as ref
+from jaxcon.bench.timing import compile_and_time
 
 jax.config.update("jax_enable_x64", True)
 

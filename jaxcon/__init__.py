@@ -12,6 +12,8 @@ The public API is what this module exports (see docs/api.md). The package is lai
   bench/           the command line, benchmarks and their independent references (not library API)
 """
 from jaxcon import scenes as scenes
+from jaxcon.core import constraints as constraints
+from jaxcon.core.constraints import Constraint as Constraint
 from jaxcon.core.model import Model as Model, State as State, Trajectory as Trajectory, build as build
 from jaxcon.core.batch import batched_rollout as batched_rollout
 from jaxcon.core.sim import rollout as rollout, step as step
@@ -26,6 +28,10 @@ from jaxcon.diagnostics import (
     violation as violation,
 )
 from jaxcon.identification.fit import FitResult as FitResult, fit as fit
+from jaxcon.identification.uncertainty import (
+    IdentifiabilityWarning as IdentifiabilityWarning,
+    MisfitWarning as MisfitWarning,
+)
 from jaxcon.solvers.direct import Direct as Direct
 from jaxcon.solvers.jacobi import Jacobi as Jacobi
 from jaxcon.solvers.penalty import Penalty as Penalty

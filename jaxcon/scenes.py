@@ -11,6 +11,7 @@ from typing import Sequence
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcon.core import constraints
 from jaxcon.core.checks import check_real, check_values, resolve_dtype
 from jaxcon.core.model import build
 from jaxcon.core.pytree import concrete
@@ -126,11 +127,25 @@ def cloth_edges(nx: int, ny: int):
     return np.concatenate(pairs), np.concatenate(colour)
 
 
+def cloth_hinges(nx: int, ny: int) -> np.ndarray:
+    """The interior edges of an nx-by-ny grid triangulated along the diagonals (r, c)-(r+1, c+1), each with its
+    two wings: [h, 4] particle indices (edge i, j, then the wings on either side), for `jc.constraints.bending`.
+    Every edge shared by two triangles: the diagonals, the horizontal edges of interior rows and the vertical
+    edges of interior columns."""
+    idx = np.arange(nx * ny).reshape(ny, nx)
+    diag = np.stack([idx[:-1, :-1], idx[1:, 1:], idx[:-1, 1:], idx[1:, :-1]], -1).reshape(-1, 4)
+    horiz = np.stack([idx[1:-1, :-1], idx[1:-1, 1:], idx[:-2, :-1], idx[2:, 1:]], -1).reshape(-1, 4)
+    vert = np.stack([idx[:-1, 1:-1], idx[1:, 1:-1], idx[1:, 2:], idx[:-1, :-2]], -1).reshape(-1, 4)
+    return np.concatenate([diag, horiz, vert])
+
+
 def cloth(nx: int = 32, ny: int = 32, size: float = 1.0, mass: float = 1.0, *, dtype=None, gravity=None,
-          layout: str = "auto"):
+          layout: str = "auto", bending=None):
     """A 3-D square cloth of nx-by-ny particles, side `size` m and total `mass` kg, lying horizontally in the
     z = 0 plane (gravity along -z), held by its two corners of the edge y = 0. Rods on structural and shear
-    edges. `layout`: see `jc.build`."""
+    edges. `layout`: see `jc.build`. `bending`: None, or a compliance alpha >= 0 (rad per N m; 0 is rigid) of
+    `jc.constraints.bending` on every interior edge of the grid triangulated along its (r, c)-(r+1, c+1)
+    diagonals (`cloth_hinges`), rest angle 0 (flat), the set named "bending"."""
     for name, v in (("nx", nx), ("ny", ny)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 2:
             raise ValueError(f"cloth: `{name}` must be an int >= 2, got {v!r}")
@@ -143,8 +158,14 @@ def cloth(nx: int = 32, ny: int = 32, size: float = 1.0, mass: float = 1.0, *, d
     x = jnp.stack([s * u.ravel(), s * w.ravel(), jnp.zeros(nx * ny, dtype)], -1)
     pairs, colour = cloth_edges(nx, ny)
     masses = jnp.full(nx * ny, jnp.asarray(mass).astype(dtype) / (nx * ny))
+    sets = None
+    if bending is not None:
+        if nx < 3 and ny < 3:
+            raise ValueError(f"cloth: `bending` needs interior edges, a grid of at least 2 by 3; got {nx} by {ny}")
+        hinges = cloth_hinges(nx, ny)
+        sets = [constraints.bending(hinges, rest=np.zeros(len(hinges)), compliance=bending, name="bending")]
     return build(x, masses, rods=pairs, fixed=[0, nx - 1], gravity=gravity, colouring=colour,
-                 grid_shape=(ny, nx), layout=layout)
+                 grid_shape=(ny, nx), layout=layout, constraints=sets)
 
 
 # ---- contact scenes ---------------------------------------------------------------------------------------------

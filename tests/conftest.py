@@ -13,7 +13,15 @@
   - One persistent compilation cache for the run (JAX_COMPILATION_CACHE_DIR, a temporary folder removed at the
     end), shared by the pytest-xdist workers, notebook kernels and subprocesses, so a program that several of
     them build is compiled once.
+- Each compiled XLA CPU executable holds about six memory maps, and JAX's jit caches keep every executable that
+  a long-lived function (`jc.rollout`, the solvers) compiled, one per model size and setting. A pytest worker
+  that runs 300 tests reaches Linux's default limit of 65,530 maps (vm.max_map_count), after which the next
+  compile aborts or segfaults inside XLA (seen in full runs on 2026-11-24, in `backend_compile_and_load` and in
+  the persistent cache's `put_executable_and_time`). After each test, a worker above `_MAX_MAPS` maps clears
+  JAX's caches (`_bound_live_executables`); later tests recompile what they need, or read it from the
+  persistent cache.
 """
+import gc
 import os
 import shutil
 import tempfile
@@ -39,7 +47,6 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs",
 jax.config.update("jax_persistent_cache_min_entry_size_bytes",
                   int(os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"]))
 
-
 @pytest.fixture(autouse=True)
 def _optimised(request):
     """`@pytest.mark.optimised`: this test's programs compile at XLA's default effort (module docstring)."""
@@ -56,3 +63,24 @@ def _optimised(request):
 def pytest_unconfigure(config):
     if os.environ.get("JAXCON_TEST_CACHE_OWNED") == str(os.getpid()):
         shutil.rmtree(os.environ["JAX_COMPILATION_CACHE_DIR"], ignore_errors=True)
+
+
+_MAX_MAPS = 24_000      # well under vm.max_map_count = 65,530; the most one test added was 2,942 (2026-11-24)
+
+
+def _map_count():
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f)
+    except OSError:
+        return None       # not Linux: no /proc/self/maps to count, nothing done
+
+
+@pytest.fixture(autouse=True)
+def _bound_live_executables():
+    """Keeps this worker's compiled executables (and their memory maps) bounded (module docstring)."""
+    yield
+    n = _map_count()
+    if n is not None and n > _MAX_MAPS:
+        jax.clear_caches()
+        gc.collect()

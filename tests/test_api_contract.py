@@ -113,10 +113,10 @@ def test_bench_writes_json(tmp_path, capsys):
     # the compact program is the smaller one: a fact of the traced program, not a timing
     assert gc["jaxcon_stablehlo_ops"] < gc["jaxcon_unrolled_stablehlo_ops"]
     assert {r["batch"] for r in data["batched"]} >= {1, 64}
-    assert {r["mode"] for r in data["batched"]} == {"vmap", "batched_rollout", "reference"}
+    assert {r["mode"] for r in data["batched"]} == {"vmap", "batched_rollout", "one_piece", "reference"}
     assert all(r["particle_steps_per_s"] > 0 and r["devices"] >= 1 for r in data["batched"])
     dp = [r for r in data["batched"] if r["scene"] == "double_pendulum"]
-    assert all(r["vs_reference"] > 0 for r in dp)
+    assert all(r["vs_reference"] > 0 and r["kernels"]["total"] > 0 and r["kernels_vs_reference"] > 0 for r in dp)
 
 
 def test_bench_best_double_pendulum_row():

@@ -232,3 +232,85 @@ def test_vmap_of_grad_through_batched_rollout():
     one_by_one = jnp.stack([jax.grad(loss)(b) for b in betas])
     np.testing.assert_allclose(together, one_by_one, rtol=1e-10)
     assert np.all(np.isfinite(np.asarray(together))) and float(jnp.max(jnp.abs(together))) > 0
+
+
+def _two_link(kind, dim=2):
+    """A double pendulum (fixed pivot, two links) in `dim` dimensions, its second link a rod or a rope."""
+    x = np.array([[0.0, 0.0, 0.0], [0.7, -0.6, 0.1], [1.2, -1.3, -0.2]])[:, :dim]
+    links = [(0, 1), (1, 2)]
+    return jc.build(x, np.array([1.0, 1.0, 2.0]), rods=links if kind == "rod" else links[:1],
+                    ropes=[] if kind == "rod" else links[1:], fixed=[0])
+
+
+@pytest.mark.parametrize("solver, kind, dim", [(jc.PGS(), "rod", 2), (jc.PGS(), "rope", 2), (jc.PGS(), "rod", 3),
+                                               (jc.PGS(stabilization="split"), "rope", 2),
+                                               (jc.PGS(warm_start=False), "rod", 3)],
+                         ids=["rods", "rope", "3d", "split-rope", "cold-3d"])
+def test_packed_sweeps_equal_rollout(solver, kind, dim):
+    """A batch run in one piece (chunk >= batch) carries PGS's sweeps packed in one array: the results are
+    rollout's, to rounding (rods, a rope, 2-D and 3-D, both stabilizations, with and without warm start)."""
+    model, state = _two_link(kind, dim)
+    states = _states(state, 4)
+    assert batch.batch_minor_topology(model.topology, 4, packed=True).packed
+    ref = jax.vmap(lambda s: jc.rollout(model, s, solver, 1 / 240, 12, save_every=3))(states)
+    got = jc.batched_rollout(model, states, solver, 1 / 240, 12, save_every=3, chunk=4)
+    for a, b in zip(jax.tree.leaves(ref), jax.tree.leaves(got)):
+        np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-9)
+
+
+def test_packing_only_where_it_pays():
+    """Packed sweeps need every colour's endpoints to match or miss the next colour's (no padded terms), and
+    only run in one piece: the CPU default (pieces) and larger models keep the plain sweeps."""
+    assert batch.packing_pays(jc.scenes.double_pendulum()[0].topology)
+    for model, _ in (jc.scenes.chain(7), jc.scenes.chain(5, kind="rope"), jc.scenes.cloth(4, 4)):
+        assert not batch.packing_pays(model.topology)
+        assert not batch.batch_minor_topology(model.topology, 4, packed=True).packed
+    cpu = jax.devices("cpu")
+    assert not batch.packs(None, cpu) and batch.packs(8, cpu)
+
+
+def test_gradient_through_packed_sweeps():
+    model, state = jc.scenes.double_pendulum(angles=(0.5, 0.5))
+    states = _states(state, 3)
+
+    def loss(rest, beta, run):
+        final, tr = run(model.replace(rest_length=rest), jc.PGS(10, beta=beta))
+        return jnp.mean(tr.x ** 2) + jnp.mean(final.lam ** 2)
+
+    packed = lambda m, s: jc.batched_rollout(m, states, s, 1 / 240, 12, chunk=3)       # noqa: E731
+    ref = lambda m, s: jax.vmap(lambda o: jc.rollout(m, o, s, 1 / 240, 12))(states)     # noqa: E731
+    for a, b in zip(jax.grad(loss, argnums=(0, 1))(model.rest_length, 0.2, packed),
+                    jax.grad(loss, argnums=(0, 1))(model.rest_length, 0.2, ref)):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.optimised
+def test_one_piece_kernels_per_step_against_the_reference():
+    """jc.batched_rollout in one piece (what an accelerator runs) compiles the double pendulum's time step to at
+    most 1.3x the kernels (fusions and copies, loops within a step counted per trip) of the plain batch-minor
+    reference, as the bench counts them (float32, PGS(10)). The counts do not depend on the batch size (the
+    same from 8 to 131072); this counts HLO, it times nothing."""
+    from jaxcon.bench.kernels import step_kernels
+    from jaxcon.bench.throughput import _batch, _timed_fn
+    model, states = _batch("double_pendulum", 256, np.float32)
+    counts = {}
+    for mode in ("one_piece", "reference"):
+        f = _timed_fn(mode, model, jc.PGS(), 1 / 240, 12, None, jax.devices("cpu")[:1])
+        counts[mode] = step_kernels(jax.jit(f).lower(states).compile().as_text(), 12)
+    one, ref = counts["one_piece"], counts["reference"]
+    assert one["copy"] == 0 and ref["total"] > 0, counts
+    assert one["total"] <= 1.3 * ref["total"], counts
+
+
+def test_constraint_sets_are_batched_with_vmap():
+    """A model with a jc.Constraint set takes the vmap path (the batch-minor copies have no set blocks), and a
+    batch of it equals vmap of rollout."""
+    x = np.array([[0.0, 0.0], [0.8, -0.6], [1.6, -0.6]])
+    con = jc.Constraint(lambda xs, p: p["L"] - jnp.linalg.norm(xs[1] - xs[0]), [(0, 1), (1, 2)], {"L": [1.0, 0.8]})
+    model, state = jc.build(x, [1.0, 1.0, 0.5], constraints=[con], fixed=[0])
+    assert not batch.layout_generic(jc.PGS(), model)
+    states = _states(state, 3)
+    ref = jax.vmap(lambda s: jc.rollout(model, s, jc.PGS(), 1 / 240, 6))(states)
+    got = jc.batched_rollout(model, states, jc.PGS(), 1 / 240, 6, chunk=3)
+    for a, b in zip(jax.tree.leaves(ref), jax.tree.leaves(got)):
+        np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12)

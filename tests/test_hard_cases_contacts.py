@@ -57,7 +57,7 @@ EXPECT = {
     ("PGS", "drape_from_1m"): (D,),
     ("PGS-split", "heavy_on_light_100"): (S, 1.5, 0.0, 1.0),
     ("PGS-split", "break_16_dt_1_60"): (S, 0.01, 0.0, 1e-9, 1e-12, 1e-12),
-    ("PGS-split", "drape_from_1m"): (S, 0.01, 0.95, 4e-3),      # 2e-3: potential energy of projected rods
+    ("PGS-split", "drape_from_1m"): (S, 0.01, 0.4, 4e-3),       # measured 0.23 and no energy gain
     # XPBD(10 substeps): position projection holds the 100:1 column to 5% of a radius and the break without any
     # overlap; Penalty(1e5 N/m, 20 substeps) sinks 18% in the column, its break gains 0.7% kinetic energy in a
     # step (stored in the contact springs), and the light cloth particles are far above its stability limit.

@@ -26,7 +26,8 @@ def _images(nb):
 
 def test_notebooks_found():
     assert {p.name for p in NOTEBOOKS} == {
-        "01_constraints.ipynb", "02_speed_vs_error.ipynb", "03_system_identification.ipynb", "04_contacts.ipynb"}
+        "01_constraints.ipynb", "02_speed_vs_error.ipynb", "03_system_identification.ipynb", "04_contacts.ipynb",
+        "05_driven_systems.ipynb", "06_constraints.ipynb"}
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)

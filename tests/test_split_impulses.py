@@ -1,9 +1,10 @@
 """Split impulses (`stabilization="split"`) for PGS, Jacobi and Direct: position error corrected without kinetic
 energy gain, the physical impulse reported, accuracy of Baumgarte's or better, gradients exact.
 
-The velocity solve asks J v = -(the curvature of the motion) (no position error), and the positions are then
-projected onto the rest lengths (PGS, Jacobi: nonlinear Gauss-Seidel / Jacobi sweeps; Direct: one exact
-linear correction). Acceptance scenes (issue 22): a 20-link chain (2 m, 0.2 kg) at 0.3 rad with every link 25%
+Baumgarte within an adaptive slop, projection beyond: where a rod's |C| is within its slop (at least 0.5% of its
+length, and twice the steady error Baumgarte leaves on its rotation) the velocity solve sees Baumgarte's bias;
+beyond it the bias is 0 and the positions are projected back to the rest lengths after the step (PGS, Jacobi:
+nonlinear Gauss-Seidel / Jacobi sweeps; Direct: an exact linear correction at Baumgarte's rate). Acceptance scenes (issue 22): a 20-link chain (2 m, 0.2 kg) at 0.3 rad with every link 25%
 too long, with and without a 20:1 end mass, dt 1/240, 1 s; and double pendulums started on the constraint
 manifold against SciPy. SWING, the most kinetic energy the chain's swing can supply, is that of the chain at its
 rest lengths released at 0.3 rad falling to hanging straight down.
@@ -29,10 +30,10 @@ def _stretched_chain(end_mass=None):
 
 
 @pytest.mark.parametrize("end_mass, solver, final", [
-    (None, jc.PGS(20, stabilization="split"), 1e-3),
-    (0.2, jc.PGS(20, stabilization="split"), 1e-2),           # 20:1: 2e-4 measured (it was 0.82)
-    (0.2, jc.Jacobi(20, stabilization="split"), 0.05),        # 20:1, Jacobi: 2.5e-2 measured (it was 0.19)
-    (0.2, jc.Direct(stabilization="split"), 1e-4),
+    (None, jc.PGS(20, stabilization="split"), 3e-3),          # 1.5e-3 measured
+    (0.2, jc.PGS(20, stabilization="split"), 1.5e-2),         # 20:1: 7.3e-3 measured (it was 0.82)
+    (0.2, jc.Jacobi(20, stabilization="split"), 0.05),        # 20:1, Jacobi: 2.6e-2 measured (it was 0.19)
+    (0.2, jc.Direct(stabilization="split"), 1e-4),            # 1.5e-5 measured
 ], ids=["PGS", "PGS-20to1", "Jacobi-20to1", "Direct-20to1"])
 def test_stretched_chain_corrects_without_energy_gain(end_mass, solver, final):
     model, state, swing = _stretched_chain(end_mass)
@@ -64,9 +65,9 @@ def _mid_swing_double_pendulum():
 
 @pytest.mark.parametrize("hz", [240, 960])
 def test_split_is_as_accurate_as_baumgarte_without_position_error(hz):
-    """On the manifold there is nothing to correct, and split must not lose accuracy: before the curvature term
-    its velocity solve kept J v = 0, so every step moved the bobs along the tangent and the next step took the
-    outward velocity away (289 mm against Baumgarte's 16.7 mm at 240 Hz in the issue)."""
+    """On the manifold there is nothing to correct, and split must not lose accuracy. The issue's split solve kept
+    J v = 0, so every step moved the bobs along the tangent and the next step took the outward velocity away (289
+    mm against Baumgarte's 16.7 mm at 240 Hz); within the slop split is Baumgarte, to the digit here."""
     model, state, th, om, L, M = _mid_swing_double_pendulum()
     steps = 3 * hz
     ref = chain_positions(th, L, M, np.arange(1, steps + 1) / hz, omegas=om)
@@ -78,7 +79,7 @@ def test_split_is_as_accurate_as_baumgarte_without_position_error(hz):
             err[cls.__name__, stab] = np.sqrt(np.mean(np.sum((np.asarray(tr.x[:, 1:]) - ref) ** 2, -1)))
     for name in ("PGS", "Jacobi", "Direct"):
         assert err[name, "split"] <= 1.2 * err[name, "baumgarte"], err
-    assert err["PGS", "split"] < (1e-2 if hz == 240 else 2.5e-3), err   # measured 8.0 mm and 2.0 mm
+    assert err["PGS", "split"] < (1.6e-2 if hz == 240 else 2.5e-3), err   # measured 14.6 mm and 1.9 mm
 
 
 @pytest.mark.parametrize("solver", [jc.PGS(5, stabilization="split"), jc.Jacobi(10, stabilization="split"),
@@ -132,9 +133,9 @@ def test_split_pgs_converges_to_the_reduced_ode():
                                     jc.Direct(stabilization="split", substeps=2)],
                          ids=lambda s: type(s).__name__)
 def test_split_gradients_match_finite_differences(solver):
-    """Reverse mode through split impulses against float64 central differences: rest lengths and the initial
-    positions, from a violated start (so the position pass is active). beta does not act on rods with split
-    impulses (their positions are projected whole), so its gradient is exactly 0."""
+    """Reverse mode through split impulses against float64 central differences: rest lengths, the initial
+    positions and beta, from a violated start (10%: beyond the slop, so the position pass is active in the first
+    steps, and Baumgarte's bias within the slop after it)."""
     model, state = jc.scenes.chain(3, 1.2, 0.6, angle=0.8)
     state = state.replace(x=state.x * 1.1)
     w = jnp.array([0.7, -1.3])
@@ -152,7 +153,8 @@ def test_split_gradients_match_finite_differences(solver):
             for p, a in ((1, 0), (2, 1), (3, 0))]
     np.testing.assert_allclose(g_rest, fd_rest, rtol=1e-6, atol=1e-8)
     np.testing.assert_allclose([g_x[1, 0], g_x[2, 1], g_x[3, 0]], fd_x, rtol=1e-6, atol=1e-8)
-    assert float(g_beta) == 0.0
+    fd_beta = (f(rest, x0, beta + e) - f(rest, x0, beta - e)) / (2 * e)
+    np.testing.assert_allclose(g_beta, fd_beta, rtol=1e-6, atol=1e-8)
     assert np.abs(np.asarray(g_rest)).max() > 1e-2
 
 

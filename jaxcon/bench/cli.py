@@ -54,6 +54,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="JSON output path, checked before running ('' for none; default bench.json)")
     b.add_argument("--f32-only", action="store_true", help="skip the float64 runs")
     b.add_argument("--no-batched", action="store_true", help="skip the batched (vmap) throughput section")
+    b.add_argument("--batched", nargs="*", type=_positive_int, metavar="N",
+                   help="instead: only the batched section on JAX's default backend (throughput and kernels per "
+                        "step of vmap, batched_rollout, batched_rollout in one piece and the plain reference), "
+                        "double pendulums at batch sizes N (default 1 1024 16384 131072) and 64 cloths")
     b.add_argument("--speed-vs-error", action="store_true",
                    help="instead: sweep every solver over iterations, substeps and dt; error against cost "
                         "(JSON, CSV and, with matplotlib, plots)")
@@ -112,6 +116,9 @@ def main(argv=None) -> int:
         from jaxcon.bench.contacts import main as contacts
         contacts(tuple(args.contacts) or (64, 256, 1024))
         return 0
+    if args.cmd == "bench" and args.batched is not None:
+        from jaxcon.bench.suite import batched_only
+        return batched_only(args)
     if args.cmd == "bench" and not args.f32_only:
         jax.config.update("jax_enable_x64", True)
     return {"demo": demo, "bench": bench}[args.cmd](args)

@@ -16,6 +16,7 @@ from jaxcon.bench.timing import (
     machine,
     steal_fraction,
 )
+from jaxcon.core.batch import CPU_CHUNK
 from jaxcon.core.sim import rollout
 from jaxcon.diagnostics import energy_drift, nan_max, violation
 from jaxcon.solvers.pgs import PGS
@@ -84,18 +85,13 @@ def bench(args) -> int:
           "rollouts ran (/proc/stat), one sign of a loaded host; fastest runs are in the JSON.")
     out = {"machine": info, "solver": f"PGS(iterations={iterations}, beta=0.2)", "results": results}
     out["xpbd_cloth"] = _xpbd_cloth(args.small, args.repeats)
+    out["user_constraints"] = user_constraint_cloth(args.small, args.repeats)
     out["gradient_compile"] = gradient_compile(args.small, args.repeats)
     if jax.config.jax_enable_x64:
         out["double_pendulum_best"] = _best_double_pendulum(args.repeats)
     if not args.no_batched:
         out["batched"] = batched(args.small, args.repeats)
-    out["host_steal"] = steal_fraction(start, _cpu_jiffies())
-    print(f"\nhost steal over the whole bench: {_pct(out['host_steal']).strip()} of this machine's CPU time")
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump(out, f, indent=2)
-        print(f"wrote {args.out}")
-    return 0
+    return _finish(out, start, args.out, "the whole bench")
 
 
 def _xpbd_cloth(small: bool, repeats: int) -> dict:
@@ -130,6 +126,43 @@ def _xpbd_cloth(small: bool, repeats: int) -> dict:
     return row
 
 
+def user_constraint_cloth(small: bool, repeats: int) -> dict:
+    """The cost of constraints written by the user: the bench cloth (32x32, float32, PGS(10), dt 1/240) with its
+    edges as built-in rods and again as a `jc.Constraint` distance set (`jc.constraints.distance`: C and J from
+    autodiff, rows through the generic gather path), measured in the same run; and with `bending` on every
+    interior edge, XPBD. us per step, final state only, median after compilation."""
+    from jaxcon.core import constraints
+    from jaxcon.core.model import build
+    from jaxcon.solvers.xpbd import XPBD
+
+    n, steps, dt = (8, 10, 1 / 240) if small else (32, 50, 1 / 240)
+    rods_model, state = scenes.cloth(n, n, dtype=np.float32)
+    pairs = np.asarray(rods_model.pairs)
+    user = constraints.distance(pairs, rest=np.asarray(rods_model.rest_length))
+    user_model, _ = build(np.asarray(state.x), 1.0 / (n * n), fixed=[0, n - 1], constraints=[user],
+                          dtype=np.float32)
+    bend_model, bend_state = scenes.cloth(n, n, dtype=np.float32, bending=1e-3)
+    row = {"case": f"cloth_{n}x{n}", "dtype": "float32", "dt": dt, "steps": steps}
+    for key, model, solver, s0 in (("rods", rods_model, PGS(10), state), ("user_constraint", user_model, PGS(10), state),
+                                   ("rods_xpbd", rods_model, XPBD(), state),
+                                   ("bending_xpbd", bend_model, XPBD(), bend_state)):
+        fn = lambda s, model=model, solver=solver: rollout(model, s, solver, dt, steps, save_every=steps)  # noqa: E731
+        t_c, t_run, _ = compile_and_time(fn, s0, repeats=repeats)
+        row[key] = {"us_per_step": t_run / steps * 1e6, "compile_s": t_c, "constraints": model.n_constraints,
+                    "colours": model.topology.n_colours}
+    row["user_over_rods"] = row["user_constraint"]["us_per_step"] / row["rods"]["us_per_step"]
+    row["bending_over_rods_xpbd"] = row["bending_xpbd"]["us_per_step"] / row["rods_xpbd"]["us_per_step"]
+    print(f"\n{row['case']}, float32, dt 1/240, final state only (us/step, compile s):")
+    for key, label in (("rods", "PGS(10), built-in rods"), ("user_constraint", "PGS(10), edges as a jc.Constraint"),
+                       ("rods_xpbd", "XPBD(), built-in rods"), ("bending_xpbd", "XPBD(), rods + bending 1e-3")):
+        r = row[key]
+        print(f"  {label:36s} {r['us_per_step']:10.1f} {r['compile_s']:7.2f}  ({r['constraints']} constraints, "
+              f"{r['colours']} colours)")
+    print(f"  user Constraint / rods: {row['user_over_rods']:.2f}x; bending / rods (XPBD): "
+          f"{row['bending_over_rods_xpbd']:.2f}x")
+    return row
+
+
 def _best_double_pendulum(repeats: int) -> dict:
     """The cheapest configuration found to reach 1e-5 m on the mild double pendulum at t = 1 s (float64):
     RATTLE(3) at dt = 1/260 (9.6e-6 m; 1/250 gives 1.04e-5), timed with the final state only and recording
@@ -159,34 +192,70 @@ def _best_double_pendulum(repeats: int) -> dict:
     return row
 
 
-def batched(small: bool, repeats: int) -> list:
+def _kernel_text(k) -> str:
+    return "" if k is None else f"{k['total']} ({k['fusion']}f+{k['copy']}c" + (f"+{k['other']}o)" if k["other"]
+                                                                                else ")")
+
+
+def batched(small: bool, repeats: int, sizes=None, only_default_backend: bool = False) -> list:
     """Batched rollouts of many systems on every backend found: jax.vmap of rollout, jc.batched_rollout (sharded
-    over the backend's devices), and the plain batch-minor reference measured in the same run; system-steps
-    (pendulum-steps, cloth-steps, billiards-steps: one step of a 16-ball table) per second. Models with contacts
-    are batched by jax.vmap inside batched_rollout (docs/contacts.md)."""
+    over the backend's devices; where that runs in pieces, also in one piece) and the plain batch-minor
+    reference measured in the same run; system-steps (pendulum-steps, cloth-steps, billiards-steps: one step
+    of a 16-ball table) per second, and the kernels each program launches per time step (fusions and copies in
+    XLA's optimised HLO, `jaxcon.bench.kernels`). Models with contacts are batched by jax.vmap inside
+    batched_rollout (docs/contacts.md). `sizes`: the double pendulum's batch sizes (default: the bench's);
+    `only_default_backend`: measure JAX's default backend only (the GPU where there is one), not every one."""
     from jaxcon.bench.throughput import backends, batched_throughput
 
     steps = 24 if small else 240
-    cases = [("double_pendulum", (1, 64) if small else (1, 1024, 16384)), ("cloth", (2,) if small else (64,))]
-    if not small:       # the small run (the suite's) leaves out billiards: its batched path is a vmap of rollout
+    pend = tuple(sizes) if sizes else (1, 64) if small else (1, 1024, 16384, 131072)
+    cases = [("double_pendulum", pend), ("cloth", (2,) if small else (64,))]
+    if not small and not sizes:   # the small run (the suite's) leaves out billiards: its path is a vmap of rollout
         cases.append(("billiards", (64, 256)))
     rows = []
-    for backend in backends():
+    for backend in [jax.default_backend()] if only_default_backend else backends():
         print(f"\nbatched rollouts over initial states, PGS(10), {steps} steps, float32, final state only; backend "
               f"{backend}, {len(jax.local_devices(backend=backend))} device(s). vmap: jax.vmap(jc.rollout); "
-              "batched_rollout: jc.batched_rollout (batch-minor, sharded); reference: plain batch-minor PGS")
-        print(f"{'scene':18s} {'batch':>6s} {'mode':>16s} {'devices':>7s} {'compile s':>9s} {'run s':>9s} "
-              f"{'system-steps/s':>15s} {'vs reference':>12s}")
-        for scene, sizes in cases:
-            for b in sizes:
+              "batched_rollout: jc.batched_rollout with its defaults (batch-minor, sharded; on CPU in pieces of "
+              f"{CPU_CHUNK}); one_piece: jc.batched_rollout(chunk=batch), what an accelerator runs by default; "
+              "reference: plain batch-minor PGS. kernels/step: fusions and copies per time step in the compiled "
+              "program (loops inside a step counted per trip)")
+        print(f"{'scene':18s} {'batch':>7s} {'mode':>16s} {'devices':>7s} {'compile s':>9s} {'run s':>9s} "
+              f"{'system-steps/s':>15s} {'vs reference':>12s} {'kernels/step':>14s} {'vs reference':>12s}")
+        for scene, sizes_ in cases:
+            for b in sizes_:
                 got = batched_throughput((b,), steps=steps, scene=scene, repeats=max(1, min(repeats, 3)),
                                          backend=backend)
-                ref = {r["mode"]: r["system_steps_per_s"] for r in got}.get("reference")
+                ref = {r["mode"]: r for r in got}.get("reference")
                 for r in got:
-                    r["vs_reference"] = None if ref is None else r["system_steps_per_s"] / ref
+                    r["vs_reference"] = None if ref is None else r["system_steps_per_s"] / ref["system_steps_per_s"]
+                    r["kernels_vs_reference"] = (None if ref is None or not r["kernels"] or not ref["kernels"]
+                                                 else r["kernels"]["total"] / ref["kernels"]["total"])
                     name = {"cloth": "cloth_16x16", "billiards": "billiards_16"}.get(scene, scene)
                     vs = "" if ref is None else f"{r['vs_reference']:.2f}x"
-                    print(f"{name:18s} {r['batch']:6d} {r['mode']:>16s} {r['devices']:7d} {r['compile_s']:9.2f} "
-                          f"{r['run_s']:9.4f} {r['system_steps_per_s']:15.3g} {vs:>12s}")
+                    kvs = "" if r["kernels_vs_reference"] is None else f"{r['kernels_vs_reference']:.2f}x"
+                    print(f"{name:18s} {r['batch']:7d} {r['mode']:>16s} {r['devices']:7d} {r['compile_s']:9.2f} "
+                          f"{r['run_s']:9.4f} {r['system_steps_per_s']:15.3g} {vs:>12s} "
+                          f"{_kernel_text(r['kernels']):>14s} {kvs:>12s}")
                     rows.append(r)
     return rows
+
+
+def batched_only(args) -> int:
+    """`python -m jaxcon bench --batched [N ...]`: the batched section alone (double pendulums at batch sizes N,
+    and 64 cloths) on JAX's default backend, written to the JSON as {"machine", "batched", "host_steal"}."""
+    info, start = machine(), _cpu_jiffies()
+    print(f"jaxcon bench --batched: {info['cpu']}, {info['cores']} cores, jax {info['jax']} on {info['platform']}")
+    out = {"machine": info, "batched": batched(args.small, args.repeats, args.batched or None, True)}
+    return _finish(out, start, args.out, "the run")
+
+
+def _finish(out: dict, start, path, what: str) -> int:
+    """Record and print the host steal since `start`, and write `out` as JSON to `path` (if given)."""
+    out["host_steal"] = steal_fraction(start, _cpu_jiffies())
+    print(f"\nhost steal over {what}: {_pct(out['host_steal']).strip()} of this machine's CPU time")
+    if path:
+        with open(path, "w") as f:
+            json.dump(out, f, indent=2)
+        print(f"wrote {path}")
+    return 0

@@ -1,4 +1,5 @@
-"""Batched throughput: `jax.vmap` of rollouts over a batch of initial states, timed after compilation."""
+"""Batched throughput: `jax.vmap` of rollouts over a batch of initial states, timed after compilation, with the
+kernels each program launches per time step (`jaxcon.bench.kernels`)."""
 from __future__ import annotations
 
 from typing import Optional, Sequence
@@ -8,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcon import scenes
+from jaxcon.bench.kernels import step_kernels
 from jaxcon.bench.timing import compile_and_time
 from jaxcon.core.model import State
 from jaxcon.bench.references.batch_minor_pgs import chain_pgs_rollout
@@ -41,14 +43,15 @@ def _batch(scene, batch, dtype):
     return model, state
 
 
-MODES = ("vmap", "batched_rollout", "reference")
+MODES = ("vmap", "batched_rollout", "one_piece", "reference")
 
 
 def _timed_fn(mode, model, solver, dt, steps, chunk, devices):
     if mode == "vmap":
         return jax.vmap(lambda s: _rollout_jit(model, s, solver, dt, steps, steps)[0].x)
-    if mode == "batched_rollout":
-        return lambda s: batch.batched_rollout(model, s, solver, dt, steps, save_every=steps, chunk=chunk,
+    if mode in ("batched_rollout", "one_piece"):
+        return lambda s: batch.batched_rollout(model, s, solver, dt, steps, save_every=steps,
+                                               chunk=s.x.shape[0] if mode == "one_piece" else chunk,
                                                devices=devices)[0].x
     if mode == "reference":
         w = np.asarray(model.inv_mass)
@@ -66,15 +69,18 @@ def batched_throughput(batch_sizes: Sequence[int] = (1, 64, 1024, 16384), steps:
     the 16-ball billiards), final state only, after compilation.
 
     modes: "vmap" (`jax.jit(jax.vmap(rollout))`), "batched_rollout" (`jc.batched_rollout` with its defaults,
-    or `chunk`), "reference" (the plain batch-minor PGS of `bench.references.batch_minor_pgs`, double pendulum
-    and PGS only; skipped otherwise).
+    or `chunk`), "one_piece" (`jc.batched_rollout(chunk=batch)`: the whole batch in one piece, what an
+    accelerator runs by default; skipped where that is the default already, and for models batched with vmap),
+    "reference" (the plain batch-minor PGS of `bench.references.batch_minor_pgs`, double pendulum and PGS only;
+    skipped otherwise).
 
     backend: run on this backend's local devices ("cpu", "gpu", ...; default: JAX's default backend); vmap and
     the reference run on its first device, `batched_rollout` shards over all of them.
 
     Returns a list of dicts: scene, batch, mode, devices, backend, particles (moving, per system), compile_s
-    (lower + compile), run_s (median of `repeats` runs), system_steps_per_s = batch * steps / run_s and
-    particle_steps_per_s.
+    (lower + compile), run_s (median of `repeats` runs), system_steps_per_s = batch * steps / run_s,
+    particle_steps_per_s and kernels (`kernels.step_kernels` of the compiled program: fusions, copies, other and
+    total per time step; None where the time loop is not found).
     """
     solver = PGS() if solver is None else solver
     devices = jax.local_devices(backend=backend)
@@ -86,12 +92,19 @@ def batched_throughput(batch_sizes: Sequence[int] = (1, 64, 1024, 16384), steps:
             for mode in modes:
                 if mode == "reference" and (scene != "double_pendulum" or type(solver) is not PGS):
                     continue
+                if mode == "one_piece" and (batch.default_chunk(devices) is None or chunk is not None
+                                            or not batch.layout_generic(solver, model)):
+                    continue
                 f = _timed_fn(mode, model, solver, dt, steps, chunk, devices)
-                compile_s, run, _ = compile_and_time(f, state, repeats=repeats)
-                rows.append(dict(scene=scene, batch=int(b), mode=mode, devices=len(devices) if mode ==
-                                 "batched_rollout" else 1, backend=devices[0].platform, particles=n, steps=steps,
-                                 compile_s=compile_s, run_s=run, system_steps_per_s=b * steps / run,
-                                 particle_steps_per_s=b * n * steps / run))
+                compile_s, run, compiled = compile_and_time(f, state, repeats=repeats)
+                try:
+                    kernels = step_kernels(compiled.as_text(), steps)
+                except ValueError:
+                    kernels = None
+                rows.append(dict(scene=scene, batch=int(b), mode=mode, devices=len(devices) if mode in
+                                 ("batched_rollout", "one_piece") else 1, backend=devices[0].platform, particles=n,
+                                 steps=steps, compile_s=compile_s, run_s=run, system_steps_per_s=b * steps / run,
+                                 particle_steps_per_s=b * n * steps / run, kernels=kernels))
     return rows
 
 

@@ -30,18 +30,22 @@ from jaxcon.core.system import Solver, System
 from jaxcon.core.topology import Block, Topology
 
 
-def batch_minor_topology(t: Topology, batch: int) -> Topology:
+def batch_minor_topology(t: Topology, batch: int, packed: bool = False) -> Topology:
     """The topology of `batch` disjoint copies of `t`, copy b of particle p at flat position p * batch + b of
     the view ``(*t.view, batch)``. Constraint k of copy b is ``k * batch + b`` within its block. Built from
-    `t`'s unrolled layout (one block per colour; a compact table's rows would each be a batch of gathers)."""
+    `t`'s unrolled layout (one block per colour; a compact table's rows would each be a batch of gathers).
+    `packed`: PGS sweeps it with `jaxcon.solvers.pgs.packed_sweeps` (one kernel per colour and sweep) where
+    `packing_pays`."""
     t, B = t.unrolled, int(batch)
     out = object.__new__(Topology)
+    out.batch, out.packed = B, bool(packed) and packing_pays(t)
     ar = np.arange(B)
 
     def rep(idx):           # per-constraint or per-particle indices of one copy -> all copies, batch-minor
         return (np.asarray(idx, np.int64)[:, None] * B + ar).reshape(-1)
 
     out.n, out.dim, out.m = t.n * B, t.dim, t.m * B
+    out.m_pairs, out.sets = t.m_pairs * B, ()          # models with constraint sets are batched with vmap
     out.i, out.j = rep(t.i), rep(t.j)
     out.is_rope, out.colour = np.repeat(t.is_rope, B), np.repeat(t.colour, B)
     out.fixed = np.repeat(t.fixed, B)                   # copy b of particle p is p * B + b
@@ -69,9 +73,35 @@ def batch_minor_topology(t: Topology, batch: int) -> Topology:
     out.blocks = tuple(blocks)
     for a in (out.i, out.j, out.is_rope, out.colour, out.fixed, out.star):
         a.setflags(write=False)
-    out._key = ("batch-minor", B, t._key)
+    out._key = ("batch-minor", B, out.packed, t._key)
     out._hash = hash(out._key)
     return out
+
+
+def _box_positions(box):
+    """The flat positions, in its view, that a strided box covers (as a set)."""
+    start, step, count = box
+    axes = [s + st * np.arange(c) for s, st, c in zip(start, step, count)]
+    return set(map(tuple, np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(axes)).tolist()))
+
+
+def packing_pays(t: Topology) -> bool:
+    """Whether PGS's packed sweeps (`jaxcon.solvers.pgs.packed_sweeps`) suit the copies of `t`: every colour
+    strided, each colour's endpoint boxes either equal to or disjoint from those of the colour after it (and of
+    the first colour, for the warm start), so the next colour reads the impulses without padding
+    (`layout.gather_after`), and the impulse rows at most double what a colour rewrites (m + the largest colour
+    <= dim * n). Elsewhere the padded terms are stored apart and the packed array grows with the model: chains of
+    7 and 8 links packed to 57 and 58 kernels per step against 74, and ran 2.6 and 4.4x slower on CPU; the 4x4
+    cloth to 323 against 293."""
+    t = t.unrolled
+    blocks = t.blocks
+    if not blocks or not all(b.strided and getattr(b, "generic", None) is None for b in blocks):
+        return False        # packed_sweeps solves rod and rope rows (a constraint set's block is not strided)
+    if t.m + max(b.size for b in blocks) > t.dim * t.n:
+        return False
+    sets = [(_box_positions(b.i_box), _box_positions(b.j_box)) for b in blocks]
+    pairs = [(c, (c + 1) % len(blocks)) for c in range(len(blocks))] + [(c, 0) for c in range(len(blocks))]
+    return all(a == g or not (a & g) for c, n in pairs for a in sets[c] for g in sets[n])
 
 
 def particles_in(t: Topology, x):
@@ -148,10 +178,12 @@ CPU_CHUNK = 1024
 
 def layout_generic(solver, model=None) -> bool:
     """Whether `solver` only uses the internal layout, so it runs on the batch-minor topology. `Direct`
-    assembles its matrices in user order, contacts gather pairs over the particle axis, and a hub's star
-    (`topology.star_colouring`) sums over its spokes; all three are batched with `jax.vmap` instead."""
+    assembles its matrices in user order, contacts gather pairs over the particle axis, a hub's star
+    (`topology.star_colouring`) sums over its spokes, and a `jc.Constraint` set's rows have no batch-minor
+    blocks; all four are batched with `jax.vmap` instead."""
     return getattr(solver, "batch_minor", True) and (model is None or (model.contact is None
-                                                                       and not model.topology.has_stars))
+                                                                       and not model.topology.has_stars
+                                                                       and not model.topology.has_sets))
 
 
 def drive_in(t: Topology, forces, targets, dtype):
@@ -165,11 +197,11 @@ def drive_in(t: Topology, forces, targets, dtype):
     return f, targets
 
 
-def _minor(model, states, solver, dt, steps, save_every, drive=(None, None)):
+def _minor(model, states, solver, dt, steps, save_every, drive=(None, None), packed=False):
     """One batch-minor rollout of every state in `states` ([b, ...] leaves), under `drive` = (forces, targets)
-    with the same leading axis b (or None)."""
+    with the same leading axis b (or None); `packed`: see `batch_minor_topology`."""
     t, dtype, B = model.topology.unrolled, jnp.result_type(states.x), states.x.shape[0]
-    tb = batch_minor_topology(t, B)
+    tb = batch_minor_topology(t, B, packed)
     sys = system(model, tb, dtype, B)
     x = particles_in(t, jnp.asarray(states.x, dtype))
     v = _sim.hold_fixed(tb, particles_in(t, jnp.asarray(states.v, dtype)))
@@ -214,16 +246,17 @@ def _pad(tree, multiple):
     return jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)]), tree)
 
 
-def _local(model, batch, solver, dt, steps, save_every, chunk):
+def _local(model, batch, solver, dt, steps, save_every, chunk, pack=False):
     """The batch held by one device, `batch` = (states, (forces, targets)) with leading batch axes: batch-minor in
-    chunks of `chunk` (None: one piece), or `jax.vmap` over chunks for solvers that are not layout-generic."""
+    chunks of `chunk` (None: one piece), or `jax.vmap` over chunks for solvers that are not layout-generic.
+    `pack`: a batch run in one piece packs PGS's sweeps (`batch_minor_topology`); pieces never do."""
     b = batch[0].x.shape[0]
     if not layout_generic(solver, model):
         one = lambda a: _sim._rollout_jit(model, a[0], solver, dt, steps, save_every, None, True,  # noqa: E731
                                           *a[1])
         return _map(one, batch, min(chunk or b, b))
     if chunk is None or chunk >= b:
-        return _minor(model, batch[0], solver, dt, steps, save_every, batch[1])
+        return _minor(model, batch[0], solver, dt, steps, save_every, batch[1], pack)
     padded = _pad(batch, chunk)
     n = padded[0].x.shape[0] // chunk
     parts = jax.tree.map(lambda a: a.reshape((n, chunk) + a.shape[1:]), padded)
@@ -237,15 +270,16 @@ def _per_copy(a, b):
     return a if a is None or jnp.ndim(a) == 4 else jnp.broadcast_to(a, (b,) + jnp.shape(a))
 
 
-@functools.partial(jax.jit, static_argnames=("steps", "save_every", "chunk", "mesh"))
-def _batched_jit(model, states, solver, dt, steps, save_every, chunk, mesh=None, forces=None, targets=None):
+@functools.partial(jax.jit, static_argnames=("steps", "save_every", "chunk", "mesh", "pack"))
+def _batched_jit(model, states, solver, dt, steps, save_every, chunk, mesh=None, forces=None, targets=None,
+                 pack=False):
     b = states.x.shape[0]
     batch = (states, tuple(_per_copy(a, b) for a in (forces, targets)))
     if mesh is None or mesh.size == 1:
-        return _local(model, batch, solver, dt, steps, save_every, chunk)
+        return _local(model, batch, solver, dt, steps, save_every, chunk, pack)
     axis = mesh.axis_names
     spec, rep = PartitionSpec(axis), PartitionSpec()
-    local = jax.shard_map(lambda m, a, so, h: _local(m, a, so, h, steps, save_every, chunk), mesh=mesh,
+    local = jax.shard_map(lambda m, a, so, h: _local(m, a, so, h, steps, save_every, chunk, pack), mesh=mesh,
                           in_specs=(rep, spec, rep, rep), out_specs=spec, check_vma=False)
     out = local(model, _pad(batch, mesh.size), solver, jnp.asarray(dt))
     return out if out[0].x.shape[0] == b else jax.tree.map(lambda a: a[:b], out)
@@ -285,6 +319,14 @@ def default_chunk(devices) -> int | None:
     return CPU_CHUNK if all(d.platform == "cpu" for d in devices) else None
 
 
+def packs(chunk, devices) -> bool:
+    """Whether a batch run in one piece packs PGS's sweeps (`jaxcon.solvers.pgs.packed_sweeps`: one kernel per
+    colour and sweep instead of two plus a copy): always, except under the CPU default (`chunk=None` on CPU,
+    pieces of CPU_CHUNK), whose plain sweeps ran 1.3 to 1.5x faster there (docs/batching.md). Pieces smaller
+    than the batch never pack."""
+    return chunk is not None or default_chunk(devices) is None
+
+
 def batched_rollout(model: Model, states: State, solver: Solver, dt, steps: int, *, chunk: int | None = None,
                     save_every: int = 1, devices=None, mesh=None, forces=None, targets=None):
     """`rollout` of a batch of initial states (x, v [B, n, dim], lam [B, m]) with one model and solver.
@@ -296,7 +338,9 @@ def batched_rollout(model: Model, states: State, solver: Solver, dt, steps: int,
 
     Args:
       chunk: systems per piece on each device. None (default): CPU_CHUNK (1024) on CPU, where pieces that fit
-        in cache ran 1.5x faster than one large piece, and no chunking on GPU or TPU.
+        in cache ran 1.5x faster than one large piece, and no chunking on GPU or TPU. A batch run in one piece
+        (the accelerator default, or `chunk` >= the batch) carries PGS's sweeps in one packed array: about half
+        the kernels per step (`packs`); the CPU default keeps the plain sweeps.
       save_every: as for `rollout`.
       devices: the devices to shard the batch over (default: all local devices); a batch that does not divide
         evenly is padded with copies of its last state, which are dropped from the results.
@@ -309,10 +353,11 @@ def batched_rollout(model: Model, states: State, solver: Solver, dt, steps: int,
     """
     forces, targets = _check_batch(model, states, solver, dt, steps, save_every, chunk, forces, targets)
     mesh = _mesh(devices, mesh)
+    pack = packs(chunk, mesh.devices.flat)
     if chunk is None:
         chunk = default_chunk(mesh.devices.flat)
     return _batched_jit(model, states, solver, dt, steps, save_every, chunk, mesh if mesh.size > 1 else None,
-                        forces, targets)
+                        forces, targets, pack)
 
 
 def _check_batch(model, states, solver, dt, steps, save_every, chunk, forces=None, targets=None):

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from typing import Any, Optional, Sequence
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -15,9 +16,10 @@ from jaxcon.core.checks import (
     check_values,
     resolve_dtype,
 )
+from jaxcon.core.constraints import Constraint, flatten_sets
 from jaxcon.core.contact import ContactTopology, check_max_neighbours, contact_pairs, uses_grid
 from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
-from jaxcon.core.topology import Topology, check_colouring, parse_pairs as _pairs, star_colouring
+from jaxcon.core.topology import SetInfo, Topology, check_colouring, parse_pairs as _pairs, star_colouring
 
 Array = Any
 
@@ -35,6 +37,8 @@ class Model:
       restitution_threshold: approach speed (m/s) below which impacts are inelastic;
       plane_normal [P, dim] (unit), plane_offset [P]: particle i stays in n . x >= offset + r_i;
       sphere_centre [S, dim], sphere_radius [S]: static spheres particles stay outside of.
+    Constraint sets: `constraints`, a tuple of `jc.Constraint` (their params and compliance are leaves), in the
+      order given to `build`; their impulses follow the rods' and ropes' in lam.
     Static: `topology` (index pairs, kinds, colouring, layout) and `contact` (a ContactTopology, or None).
     """
 
@@ -51,6 +55,7 @@ class Model:
     sphere_centre: Array = None
     sphere_radius: Array = None
     contact: Optional[ContactTopology] = static_field(default=None)
+    constraints: tuple = ()
 
     def __post_init__(self):
         check_model("Model", self)
@@ -85,8 +90,9 @@ class Model:
         w = concrete(self.inv_mass)
         fixed = "" if w is None else f" ({int(np.sum(w == 0))} fixed)"
         ropes = int(t.is_rope.sum())
-        kinds = ", ".join(plural(k, kind) for k, kind in ((t.m - ropes, "rod"), (ropes, "rope")) if k)
-        dtype = jnp.result_type(self.rest_length if t.m else self.inv_mass)
+        kinds = ", ".join([plural(k, kind) for k, kind in ((t.m_pairs - ropes, "rod"), (ropes, "rope")) if k]
+                          + [f"{info.m} {info.name}" for info in t.sets])
+        dtype = jnp.result_type(self.inv_mass)
         c = self.contact
         contacts = "" if c is None else ", contacts: " + ", ".join(
             plural(k, word) for k, word in ((c.n_planes, "plane"), (c.n_spheres, "sphere"), (c.n_pairs, "pair"))
@@ -108,7 +114,7 @@ def check_model(owner: str, model, prefix: str = "") -> None:
     t = model.topology
     if not isinstance(t, Topology):
         raise TypeError(f"{owner}: `{prefix}topology` must be a Topology, got {type(t).__name__}")
-    for name, shape, sign in (("inv_mass", (t.n,), True), ("rest_length", (t.m,), True),
+    for name, shape, sign in (("inv_mass", (t.n,), True), ("rest_length", (t.m_pairs,), True),
                               ("gravity", (t.dim,), False)):
         check_shape(owner, prefix + name, getattr(model, name), shape)
         check_values(owner, prefix + name, getattr(model, name), nonneg=sign)
@@ -119,6 +125,20 @@ def check_model(owner: str, model, prefix: str = "") -> None:
                          "when the model was built, and its colouring lets constraints that share a fixed particle "
                          "be solved together; build the model again with that particle free")
     _check_contact_leaves(owner, model, prefix)
+    _check_sets(owner, model, prefix)
+
+
+def _check_sets(owner, model, prefix) -> None:
+    """The model's constraint sets are those its topology was built with: same count, sizes and kinds."""
+    t, cons = model.topology, model.constraints
+    if not isinstance(cons, tuple) or len(cons) != len(t.sets) or not all(isinstance(c, Constraint) for c in cons):
+        raise ValueError(f"{owner}: `{prefix}constraints` must be the {len(t.sets)} jc.Constraint sets the model was "
+                         f"built with, got {type(cons).__name__} of {len(cons) if isinstance(cons, tuple) else '?'}")
+    for c, info in zip(cons, t.sets):
+        if c.m != info.m or c.arity != info.k or c.unilateral != info.unilateral or not np.array_equal(
+                c.particles.array, info.particles):
+            raise ValueError(f"{owner}: `{prefix}constraints` set {info.name!r} differs from the one the model was "
+                             "built with (particles or kind); build the model again to change them")
 
 
 def _check_contact_leaves(owner, model, prefix) -> None:
@@ -332,6 +352,7 @@ def build(
     friction=None,
     restitution=None,
     restitution_threshold=None,
+    constraints=None,
 ):
     """Build a model and its initial state from arrays.
 
@@ -380,6 +401,8 @@ def build(
       friction, restitution: Coulomb mu >= 0 and e in [0, 1] of every contact (default 0 and 0).
       restitution_threshold: approach speed (m/s, default 0.5) below which an impact is inelastic, so that
         resting contacts (approach speed g dt per step) do not bounce.
+      constraints: `jc.Constraint` sets of any kind (docs/constraints.md; built-ins in `jc.constraints`), after
+        the rods and ropes in lam; checked here (particles in range and not all fixed, fn scalar, unique names).
 
     Returns:
       (model, state).
@@ -388,24 +411,25 @@ def build(
     n, dim = x.shape
     is_fixed = _fixed_mask(fixed, n)
     inv_mass = _inverse_masses(masses, is_fixed, dtype)
-
     pairs, is_rope = _constraint_pairs(rods, ropes, n)
-    m = len(pairs)
+    sets = _constraint_sets(constraints, x, is_fixed, dtype)
+    m = len(pairs) + sum(c.m for c in sets)
     contact_pairs_, grid_k = _collisions(collide, max_neighbours, n, dim, pairs)
     has_contacts = bool(planes) or bool(spheres) or len(contact_pairs_) > 0 or grid_k > 0
     if m == 0 and not has_contacts:
-        raise ValueError("build: the model needs at least one constraint (`rods` or `ropes`) or contact "
-                         "(`planes`, `spheres` or `collide`)")
+        raise ValueError("build: the model needs at least one constraint (`rods`, `ropes` or `constraints`) or "
+                         "contact (`planes`, `spheres` or `collide`)")
     i, j = pairs[:, 0], pairs[:, 1]
 
     rest = _rest_lengths(rest_lengths, positions, x, i, j, dtype)
     v = _velocities(velocities, x)
     g = _gravity("build", gravity, dim, dtype)
-    topo = _topology(n, dim, i, j, is_rope, colouring, grid_shape, layout, is_fixed)
-    contact = dict(radius=radius, planes=planes, spheres=spheres, friction=friction, restitution=restitution,
-                   threshold=restitution_threshold)
-    return _with_contacts(Model(inv_mass, rest, g, topo), State(x, v, jnp.zeros(m, dtype)), contact_pairs_,
-                          has_contacts, grid=(grid_k, pairs), **contact)
+    topo = _topology(n, dim, i, j, is_rope, colouring, grid_shape, layout, is_fixed,
+                     tuple(SetInfo(c.particles.array, c.unilateral, c.name) for c in sets))
+    model = Model(inv_mass, rest, g, topo, constraints=tuple(sets))
+    return _with_contacts(model, State(x, v, jnp.zeros(m, dtype)), contact_pairs_, has_contacts, grid=(grid_k, pairs),
+                          radius=radius, planes=planes, spheres=spheres, friction=friction, restitution=restitution,
+                          threshold=restitution_threshold)
 
 
 def _positions(positions, dtype):
@@ -600,11 +624,45 @@ def _gravity(owner, gravity, dim, dtype):
     return jnp.asarray(gravity).astype(dtype)
 
 
-def _topology(n, dim, i, j, is_rope, colouring, grid_shape, layout, fixed) -> Topology:
+def _topology(n, dim, i, j, is_rope, colouring, grid_shape, layout, fixed, sets=()) -> Topology:
     """`build`'s static topology: the colouring (checked, or the default with hub stars; constraints of one
-    colour may share a fixed particle) and the layout."""
+    colour may share a fixed particle), the constraint sets' and the layout."""
     colour, star = _colouring(colouring, i, j, n, fixed)
-    return Topology(n, dim, i, j, is_rope, colour, _view(grid_shape, n), layout, star=star, fixed=fixed)
+    return Topology(n, dim, i, j, is_rope, colour, _view(grid_shape, n), layout, star=star, fixed=fixed, sets=sets)
+
+
+def _constraint_sets(constraints, x, fixed, dtype) -> list:
+    """`build`'s constraint sets, checked against the model (n particles, `fixed`, dim) and with their floating
+    leaves in the model's dtype; names made unique."""
+    n, dim = x.shape
+    out, names = [], {}
+    for c in flatten_sets(constraints):
+        p = c.particles.array
+        bad = (p < 0) | (p >= n)
+        if bad.any():
+            r = int(np.argwhere(bad)[0][0])
+            raise ValueError(f"build: constraint set {c.name!r}: `particles[{r}]` = {p[r].tolist()} has an index out "
+                             f"of range (there are {n} particles)")
+        frozen = fixed[p].all(axis=1)
+        if frozen.any():
+            r = int(np.argmax(frozen))
+            raise ValueError(f"build: constraint set {c.name!r}: `particles[{r}]` = {p[r].tolist()} are all fixed, so "
+                             "the constraint can move nothing")
+        one = {k: jax.ShapeDtypeStruct(np.shape(v)[1:], jnp.result_type(v)) for k, v in c.params.items()}
+        try:
+            out_shape = jax.eval_shape(c.fn, jax.ShapeDtypeStruct((c.arity, dim), dtype), one)
+        except Exception as e:           # noqa: BLE001 - the user's function failed on the right shapes
+            raise ValueError(f"build: constraint set {c.name!r}: `fn` failed on x [{c.arity}, {dim}] and one "
+                             f"constraint's params: {type(e).__name__}: {e}") from None
+        if not (hasattr(out_shape, "shape") and out_shape.shape == ()):
+            raise ValueError(f"build: constraint set {c.name!r}: `fn` must return a scalar for x [{c.arity}, {dim}], "
+                             f"got {getattr(out_shape, 'shape', out_shape)}")
+        name = c.name if c.name not in names else f"{c.name}_{names[c.name]}"
+        names[c.name] = names.get(c.name, 0) + 1
+        cast = {k: jnp.asarray(v).astype(dtype) if jnp.issubdtype(jnp.result_type(v), jnp.floating) else v
+                for k, v in c.params.items()}
+        out.append(c.replace(params=cast, compliance=jnp.asarray(c.compliance).astype(dtype), name=name))
+    return out
 
 
 def _colouring(colouring, i, j, n, fixed):

@@ -389,11 +389,12 @@ def check_record_memory(owner, model, state, steps, save_every, batch=1, inputs=
             f"`save_every` >= {save_every * fit} (every k-th step is kept), or run fewer `steps` per call.")
 
 
-def check_drive(owner, model, forces, targets, steps=None, batch=None):
+def check_drive(owner, model, forces, targets, steps=None, batch=None, steps_name="steps", copy="copy"):
     """Refuse, before tracing, `forces` / `targets` that are not real numbers, have the wrong shape or hold values
     that are not finite (where known now), and `targets` for a model without fixed particles. `steps` None: one
     step's values, forces [n, dim] and targets [n_fixed, dim]; else a leading axis of `steps`; `batch`: a
     batched call, which takes a leading batch axis too, or arrays without one shared by the whole batch.
+    `steps_name` and `copy` name the steps axis and a member of the batch in the error.
     Returns (forces, targets), lists turned into NumPy arrays (a list would reach jit as a pytree of scalars)."""
     t = model.topology
     forces, targets = (a if a is None or hasattr(a, "dtype") else np.asarray(a) for a in (forces, targets))
@@ -402,7 +403,7 @@ def check_drive(owner, model, forces, targets, steps=None, batch=None):
         raise ValueError(f"{owner}: `targets` gives the paths of the fixed particles, but the model has no fixed "
                          "particles (build it with `fixed=`; use `forces` to push free particles)")
     lead = () if steps is None else (steps,)
-    lead_name = () if steps is None else ("steps",)
+    lead_name = () if steps is None else (steps_name,)
     shown = ", ".join(map(str, fixed[:8])) + (", ..." if len(fixed) > 8 else "")
     for name, arr, per, per_name, what in (
             ("forces", forces, (t.n, t.dim), ("n", "dim"), "an external force (N) on every particle"),
@@ -417,7 +418,7 @@ def check_drive(owner, model, forces, targets, steps=None, batch=None):
             want.insert(0, (("batch",) + lead_name + per_name, (batch,) + lead + per))
         if shape not in [w for _, w in want]:
             forms = " or ".join(f"({', '.join(k)}) = {w}" for k, w in want)
-            shared = " (without the batch axis: shared by every copy)" if batch is not None else ""
+            shared = f" (without the batch axis: shared by every {copy})" if batch is not None else ""
             raise ValueError(f"{owner}: `{name}` must have shape {forms}{shared}, {what}"
                              f"{' after each step' if name == 'targets' else ''}; got {describe_shape(shape)}")
         check_values(owner, name, arr)

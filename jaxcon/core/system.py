@@ -6,6 +6,7 @@ from typing import Any
 import jax.numpy as jnp
 
 from jaxcon.core import layout as L
+from jaxcon.core import rows as R
 from jaxcon.core.model import Model
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.topology import Topology
@@ -30,20 +31,56 @@ class System:
     topology: Topology = static_field()
     contact: Any = None          # a ContactSystem (jaxcon.solvers.contact) for models with contacts
     accel: Any = None            # the step's external acceleration w F [dim, *view], or None
+    sets: tuple = ()             # per jc.Constraint set: its leaves in its block's table (`rows.SetSystem`)
+    cons: tuple = static_field(default=())   # the sets' `Constraint`s with their leaves dropped (fn, kind, name)
 
     @classmethod
     def from_model(cls, model: Model, dtype) -> "System":
         from jaxcon.solvers.contact import ContactSystem
         t = model.topology
         w = L.per_particle_in(t, jnp.asarray(model.inv_mass, dtype))
-        rest = L.constraints_in(t, jnp.asarray(model.rest_length, dtype))
-        return cls(w, rest, jnp.asarray(model.gravity, dtype), t, ContactSystem.from_model(model, dtype))
+        rest = jnp.asarray(model.rest_length, dtype)
+        if t.has_sets:         # rest lengths are the pairs'; a set block's entries are unused zeros
+            rest = jnp.concatenate([rest, jnp.zeros(t.m - t.m_pairs, dtype)])
+        rest = L.constraints_in(t, rest)
+        sets, first = [], t.m_pairs
+        set_blocks = [b for b in t.blocks if b.generic is not None]
+        for con, blk in zip(model.constraints, set_blocks):
+            sets.append(R.set_system(con, blk, first, dtype))
+            first += con.m
+        cons = tuple(_static(c) for c in model.constraints)
+        return cls(w, rest, jnp.asarray(model.gravity, dtype), t, ContactSystem.from_model(model, dtype), None,
+                   tuple(sets), cons)
+
+    def set_of(self, block):
+        """(the `Constraint`, its `SetSystem`) of a set's block (or `SetRow`)."""
+        return self.cons[block.generic], self.sets[block.generic]
 
     def apply_gravity(self, v, h):
         """v + h (g + w F): gravity on the free particles, and the step's external forces (`accel`) if any."""
         g = self.gravity.reshape((-1,) + (1,) * len(self.topology.view))
         v = v + h * g * (self.w > 0).astype(v.dtype)
         return v if self.accel is None else v + h * self.accel
+
+
+class _StaticConstraint:
+    """A `Constraint` without its leaves, hashable by its function, kind and name (jit metadata)."""
+
+    __slots__ = ("fn", "unilateral", "name", "m")
+
+    def __init__(self, c):
+        self.fn, self.unilateral, self.name, self.m = c.fn, c.unilateral, c.name, c.m
+
+    def __hash__(self):
+        return hash((self.fn, self.unilateral, self.name, self.m))
+
+    def __eq__(self, other):
+        return isinstance(other, _StaticConstraint) and (self.fn, self.unilateral, self.name, self.m) == (
+            other.fn, other.unilateral, other.name, other.m)
+
+
+def _static(c):
+    return _StaticConstraint(c)
 
 
 class Solver:

@@ -91,15 +91,9 @@ def star_colouring(i: np.ndarray, j: np.ndarray, n: int, fixed=None) -> tuple[np
             star[ks] = len(members)
             members.append((p, ks))
     colour = np.full(m, -1, np.int64)
-    used = [set() for _ in range(n)]
-    for s_id, (p, ks) in enumerate(members):
-        parts = [q for q in np.unique(np.concatenate([i[ks], j[ks]])) if free[q]]
-        c = 0
-        while any(c in used[q] for q in parts):
-            c += 1
+    groups = [np.unique(np.concatenate([i[ks], j[ks]])) for _, ks in members]
+    for (_, ks), c in zip(members, _first_fit(groups, free)):
         colour[ks] = c
-        for q in parts:
-            used[q].add(c)
     rest = star < 0
     colour[rest] = greedy_colouring(i[rest], j[rest], n, fixed)
     return star, colour
@@ -207,6 +201,8 @@ class Block:
     flat: Optional[StaticArray] = None   # table, star: [size] flat positions of the real entries, in block order
     star: bool = False            # every star: hub [C, H] and j_idx, src [C, H, S] (colour, star, spoke: the other
     hub: Optional[StaticArray] = None    # particles and user constraint indices, padded with n and m)
+    generic: Optional[int] = None # a constraint set's block: the set's index; i_idx [k, C, W] its particles (internal
+    real: Optional[StaticArray] = None   # flat), src [C, W] user constraint indices (m: padding), real [C, W]
 
     @property
     def strided(self) -> bool:
@@ -217,6 +213,51 @@ class Block:
         return self.all_rope or self.rope is not None
 
 
+@dataclasses.dataclass(frozen=True)
+class SetInfo:
+    """The static part of a `jc.Constraint` set: its particles [m, k] (user indices), kind and name."""
+
+    particles: np.ndarray
+    unilateral: bool
+    name: str
+
+    @property
+    def m(self) -> int:
+        return int(self.particles.shape[0])
+
+    @property
+    def k(self) -> int:
+        return int(self.particles.shape[1])
+
+    @property
+    def key(self):
+        return (self.particles.tobytes(), self.particles.shape, self.unilateral, self.name)
+
+
+def greedy_colouring_any(particles: np.ndarray, n: int, fixed=None) -> np.ndarray:
+    """Greedy colouring of constraints of any arity ([m, k] particle indices), in the given order: the smallest
+    colour not used at any of the constraint's particles that are not `fixed` (a fixed particle never moves, so
+    any number of constraints of one colour may share it)."""
+    free = np.ones(n, bool) if fixed is None else ~np.asarray(fixed, bool)
+    return _first_fit(np.asarray(particles).tolist(), free)
+
+
+def _first_fit(groups, free) -> np.ndarray:
+    """First-fit colouring of `groups` (each a sequence of particle indices), in order: each group gets the
+    smallest colour not yet used at any of its particles that are `free` (fixed ones may be shared)."""
+    used = [set() for _ in range(len(free))]
+    colour = np.empty(len(groups), np.int64)
+    for r, group in enumerate(groups):
+        ps = [int(p) for p in group if free[p]]
+        c = 0
+        while any(c in used[p] for p in ps):
+            c += 1
+        colour[r] = c
+        for p in ps:
+            used[p].add(c)
+    return colour
+
+
 class Topology:
     """Everything static about a model: sizes, index pairs, kinds, colouring and the internal layout.
 
@@ -224,7 +265,7 @@ class Topology:
     small models with several colours: `COMPACT_MIN_COLOURS`, `COMPACT_MAX_WIDTH`), 'compact' or 'unrolled'.
     """
 
-    def __init__(self, n, dim, i, j, is_rope, colour, view, layout="auto", star=None, fixed=None):
+    def __init__(self, n, dim, i, j, is_rope, colour, view, layout="auto", star=None, fixed=None, sets=()):
         self.n = int(n)
         self.dim = int(dim)
         self.i = np.asarray(i, np.int64)
@@ -232,9 +273,13 @@ class Topology:
         self.is_rope = np.asarray(is_rope, bool)
         self.colour = np.asarray(colour, np.int64)
         self.view = tuple(int(s) for s in view)    # the particle grid's shape (internal order: see pos / order)
-        self.m = len(self.i)
+        # rods and ropes are the pair constraints 0..m_pairs-1; `sets` (`SetInfo`, one per jc.Constraint set)
+        # follow in order, so m counts every constraint (the length of a state's lam)
+        self.sets = tuple(sets)
+        self.m_pairs = len(self.i)
+        self.m = self.m_pairs + sum(s.m for s in self.sets)
         # star[k]: constraint k's star (`star_colouring`), -1 if it has none; a star's colour is its own colour set
-        self.star = np.full(self.m, -1, np.int64) if star is None else np.asarray(star, np.int64)
+        self.star = np.full(self.m_pairs, -1, np.int64) if star is None else np.asarray(star, np.int64)
         self.has_stars = bool((self.star >= 0).any())
         # the particles fixed when the model was built: the colouring may put constraints that share one of them
         # in one colour, so they must stay fixed (`Model` checks their inverse mass stays 0)
@@ -246,22 +291,30 @@ class Topology:
         if layout not in LAYOUTS:
             raise ValueError(f"build: `layout` must be one of {LAYOUTS}, got {layout!r}")
         # a model without rods or ropes has no colours to put in a table: it keeps the (empty) unrolled layout
-        if self.m and (layout == "compact" or (layout == "auto" and self._small())):
+        if self.m_pairs and (layout == "compact" or (layout == "auto" and self._small())):
             self._compact()
         else:
             self._choose_layout()
+        self._set_blocks()
         self.layout = "compact" if self.compact else "unrolled"
         self._key = (
             self.n, self.dim, self.view, self.i.tobytes(), self.j.tobytes(), self.is_rope.tobytes(),
             self.colour.tobytes(), self.layout, self.star.tobytes(), self.fixed.tobytes(),
+            tuple(s.key for s in self.sets),
         )
         self._hash = hash(self._key)
 
     compact = False
+    #: Copies in a batch-minor topology (`jaxcon.core.batch.batch_minor_topology`): the view's last axis; None
+    #: for a single system.
+    batch = None
+    #: Whether a batch-minor topology's solvers carry each sweep's velocities and impulses in one packed array
+    #: (`jaxcon.solvers.pgs.packed_sweeps`): what a batch run in one piece uses.
+    packed = False
 
     @property
     def n_colours(self) -> int:
-        return sum(int(b.shape[0]) if b.table or b.star else 1 for b in self.blocks)
+        return sum(int(b.shape[0]) if b.table or b.star or b.generic is not None else 1 for b in self.blocks)
 
     def _small(self) -> bool:
         plain = self.colour[self.star < 0]
@@ -298,7 +351,7 @@ class Topology:
         all_rope = bool(plain.all())
         mixed = StaticArray(rope) if plain.any() and not all_rope else None
         offset = blocks[0].offset
-        self.blocks = stars + (Block(offset, self.m - offset, I.shape, None, None, StaticArray(I), StaticArray(J),
+        self.blocks = stars + (Block(offset, self.m_pairs - offset, I.shape, None, None, StaticArray(I), StaticArray(J),
                                      StaticArray(src), mixed, all_rope, table=True, flat=StaticArray(flat)),)
         self.compact = True
 
@@ -309,7 +362,7 @@ class Topology:
             return self
         if getattr(self, "_unrolled", None) is None:
             self._unrolled = Topology(self.n, self.dim, self.i, self.j, self.is_rope, self.colour, self.view,
-                                      layout="unrolled", star=self.star, fixed=self.fixed)
+                                      layout="unrolled", star=self.star, fixed=self.fixed, sets=self.sets)
         return self._unrolled
 
     def _choose_layout(self):
@@ -423,6 +476,41 @@ class Topology:
                     flat=StaticArray(flat), star=True, hub=StaticArray(hubs))
         return [(blk, src.reshape(-1)[flat].astype(np.int64))]
 
+    has_sets = property(lambda self: bool(self.sets))
+
+    def _set_blocks(self):
+        """Append one generic block per constraint set (`SetInfo`), after the pairs' blocks, and extend perm /
+        inv_perm to every constraint. A set's block is a table [colours, width] (its own greedy colouring over
+        the free particles), swept colour by colour in a scan (`layout.each_colour`)."""
+        if not self.sets:
+            return
+        to_internal = np.arange(self.n) if self.pos is None else np.asarray(self.pos)
+        blocks, perm = list(self.blocks), [np.asarray(self.perm, np.int64)]
+        first, offset = self.m_pairs, self.m_pairs
+        for s_id, info in enumerate(self.sets):
+            colour = greedy_colouring_any(info.particles, self.n, self.fixed)
+            C, W = int(colour.max()) + 1, int(np.bincount(colour).max())
+            idx = np.zeros((C, W, info.k), np.int32)
+            src = np.full((C, W), self.m, np.int32)
+            for c in range(C):
+                rows = np.flatnonzero(colour == c)
+                idx[c, :len(rows)] = to_internal[info.particles[rows]]
+                idx[c, len(rows):] = to_internal[info.particles[rows[0]]]      # padding: a real row, masked
+                src[c, :len(rows)] = first + rows
+            real = src < self.m
+            flat = np.flatnonzero(real.reshape(-1)).astype(np.int32)
+            blocks.append(Block(offset, info.m, (C, W), None, None, StaticArray(np.moveaxis(idx, -1, 0)), None,
+                                StaticArray(src), None,
+                                info.unilateral, flat=StaticArray(flat), generic=s_id, real=StaticArray(real)))
+            perm.append(src.reshape(-1)[flat].astype(np.int64))
+            first += info.m
+            offset += info.m
+        perm = np.concatenate(perm).astype(np.int32)
+        inv_perm = np.argsort(perm).astype(np.int32)
+        perm.setflags(write=False)
+        inv_perm.setflags(write=False)
+        self.blocks, self.perm, self.inv_perm = tuple(blocks), perm, inv_perm
+
     def __hash__(self):
         return self._hash
 
@@ -435,9 +523,12 @@ class Topology:
         kinds = f"{int((~self.is_rope).sum())} rods, {int(self.is_rope.sum())} ropes"
         if self.has_stars:
             kinds += f", {int(self.star.max()) + 1} hub stars"
+        for info in self.sets:
+            kinds += f", {info.m} {info.name}"
         strided = sum(b.strided for b in self.blocks)
         if self.compact:
+            tab = next(b for b in self.blocks if b.table)
             return (f"Topology(n={self.n}, dim={self.dim}, {kinds}, {self.n_colours} colours (compact: one "
-                    f"[{self.blocks[-1].shape[0]}, {self.blocks[-1].shape[1]}] table), view={self.view})")
+                    f"[{tab.shape[0]}, {tab.shape[1]}] table), view={self.view})")
         return (f"Topology(n={self.n}, dim={self.dim}, {kinds}, {self.n_colours} colours "
                 f"({strided} strided), view={self.view}{'' if self.order is None else ', parity-split'})")

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxcon.core import layout as L
+from jaxcon.core import rows as R
 from jaxcon.core.system import System
 from jaxcon.core.topology import Topology
 from jaxcon.solvers import contact
@@ -28,13 +29,17 @@ class Frame(NamedTuple):
 
 
 def frames(sys: System, x) -> tuple:
-    """Per-block constraint geometry of positions `x` ([dim, *view])."""
+    """Per-block constraint geometry of positions `x` ([dim, *view]): a `Frame` per rod and rope block, a
+    `rows.SetFrame` per constraint set's block."""
     out = []
     for blk, rest in zip(sys.topology.blocks, sys.rest):
+        if blk.generic is not None:
+            out.append(R.set_frame(sys.topology, blk, *sys.set_of(blk), x, sys.w))
+            continue
         xi, xj = L.gather_pair(sys.topology, blk, x)
         wi, wj = L.gather_pair(sys.topology, blk, sys.w)
         wi, wj = wi[0], wj[0]
-        dist, n = L.safe_norm(xj - xi, axis=0)
+        dist, n = L.safe_norm(xj - xi, axis=0, elementwise=sys.topology.batch is not None)
         k = L.safe_reciprocal(wi + wj) * (dist > 0).astype(dist.dtype)
         out.append(Frame(n, dist, dist - rest, wi, wj, k))
     return tuple(out)
@@ -52,55 +57,81 @@ def clamp_ropes(blk, lam):
 def apply_impulses(sys: System, v, fr: tuple, lam: tuple):
     """v + M^-1 J^T lam for every block (tension convention: lam > 0 pulls the endpoints together)."""
     for blk, f, l in zip(sys.topology.blocks, fr, lam):
-        p = f.n * l
-        v = L.add_pair(sys.topology, blk, v, f.wi * p, -f.wj * p)
+        v = R.apply(sys.topology, blk, f, v, l)
     return v
 
 
-def curvature_rate(n, dist, u, h, axis=0):
-    """The rate at which moving along the constraint's tangent for h opens a distance constraint: for relative
-    velocity u whose part across the unit normal n is u_t, |d + h u_t| = sqrt(d^2 + h^2 |u_t|^2), so the
-    distance grows by (sqrt(d^2 + h^2 |u_t|^2) - d) / h = h |u_t|^2 / (sqrt(d^2 + h^2 |u_t|^2) + d) per unit
-    time (written without cancellation; 0 where d and u_t are both 0). `axis`: the vector axis of n and u.
-
-    This is the discrete form of the velocity constraint's curvature term (J-dot v = |u_t|^2 / d). A velocity
-    solve that asks J v = 0 moves the particles along the tangent, so every step lengthens a rotating rod by
-    about h^2 |u_t|^2 / (2 d) and the next step's solve removes the outward velocity that this rotation leaves,
-    losing (h |u_t|^2 / d)^2 / 2 of kinetic energy per unit mass and step. Asking J v = -curvature_rate moves
-    them along the chord instead. Baumgarte stabilisation gets there indirectly (its steady position error
-    h^2 |u_t|^2 / (2 d beta) supplies that inward velocity); split impulses, whose velocity solve sees no
-    position error, need it explicitly."""
-    ut = u - n * jnp.sum(u * n, axis=axis, keepdims=True)
-    ut2 = jnp.sum(ut * ut, axis=axis)
-    return h * ut2 * L.safe_reciprocal(jnp.sqrt(dist * dist + h * h * ut2) + dist)
+def gamma(f, h):
+    """A set's rows' compliance term alpha / h^2 (velocity level: the implicit spring of compliance alpha over a
+    step h), or None for rods and ropes."""
+    a = R.compliant(f)
+    return None if a is None else a / (h * h)
 
 
-def velocity_bias(topo: Topology, fr: tuple, beta, h, v=None) -> tuple:
+def row_solve(topo, blk, f, rhs, lam, g):
+    """The multiplier changes of one colour's rows with right-hand side `rhs` (rel + bias): `layout.block_solve`,
+    or for a set's compliant rows (`g` = alpha / h^2, `gamma`) (rhs - g lam) / (J M^-1 J^T + g), the implicit
+    spring (XPBD's update at velocity level: at rest, C = alpha * force; its warm start: `warm_rows`)."""
+    if g is None:
+        return L.block_solve(topo, blk, f, rhs)
+    return (rhs - g * lam) * L.safe_reciprocal(f.s + g) * (f.k > 0).astype(rhs.dtype)
+
+
+def velocity_bias(topo: Topology, fr: tuple, beta, h, slop=None) -> tuple:
     """Per-block velocity bias: (beta / h) C for rods and taut ropes, the speculative C / h for slack ropes (the
-    rope may close the gap within this (sub)step but no further). Split impulses pass the velocities `v`
-    [dim, *view] and beta = 0: rods and taut ropes then get the `curvature_rate` of their motion instead of a
-    position correction, so the velocity solve keeps C(x + h v) = C(x) to second order."""
+    rope may close the gap within this (sub)step but no further); a constraint set's unilateral rows as ropes, its
+    compliant rows C / h (`row_solve` softens them). Split impulses pass `slop` (`split_slop`), per block the
+    error up to which Baumgarte corrects it; a larger C gets no bias (`split_position_pass` removes it without
+    touching the velocities)."""
     out = []
-    for blk, f in zip(topo.blocks, fr):
-        b = beta / h * f.C
+    for k, (blk, f) in enumerate(zip(topo.blocks, fr)):
+        C = f.C if slop is None else jnp.where(jnp.abs(f.C) <= slop[k], f.C, 0)
+        b = beta / h * C
+        if R.compliant(f) is not None:          # a compliant row is a spring: the whole C, softened by gamma
+            b = jnp.where(f.alpha > 0, f.C / h, b)
         if blk.has_rope:
             slack = jnp.where(f.C > 0, b, f.C / h)
             b = slack if blk.all_rope else jnp.where(blk.rope.array, slack, b)
-        if v is not None:       # every row, a slack rope's too: its speculative C(x + h v) <= 0 includes it, and
-            vi, vj = L.gather_pair(topo, blk, v)      # a rope just at its length gets the same target either way
-            b = b + curvature_rate(f.n, f.dist, vj - vi, h)
         out.append(b)
     return tuple(out)
 
 
-def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, factor=1.0, gradient: bool = True):
-    """Apply `factor` times the previous impulses (ropes clamped, undefined constraints dropped) to `v`.
-    Returns (v, lam): the velocities after the warm start and the accumulated impulses to iterate from."""
+def warm_rows(f, lam, h):
+    """The previous impulses `lam` of a block that a velocity-level (sub)step of length h starts from: all of them,
+    but a constraint set's compliant row's scaled by gamma / (J M^-1 J^T + gamma) = alpha / (alpha + h^2 J M^-1 J^T)
+    (`gamma`): in full where the spring is soft for the step, not at all where it is stiff.
+
+    A compliant row's solve (`row_solve`) converges to the same impulse from any start; the warm start only helps
+    sweeps that do not converge. A soft spring's impulse (gamma well above J M^-1 J^T: h omega well below 1, omega =
+    sqrt(J M^-1 J^T / alpha) the row's own frequency) is its force h C / alpha, smooth in the positions: the last
+    one is a good start, and the rows around it need it (the compliant 5-link arm of tests/test_constraints.py at
+    240 Hz, Jacobi(10), 1 s: 1.9 mm from its equilibrium with this scale, 1.6 mm warm-started in full, 28 mm started
+    from 0). A stiff spring's (gamma well below J M^-1 J^T: h omega well above 1, a spring the step does not
+    resolve) is a hard row's with the bias C / h, Baumgarte at beta = 1: the last impulse holds the last step's
+    correction, which the new bias asks for again, and sweeps that do not converge apply it twice, so the system
+    gains energy. Measured on `scenes.cloth(12, 12, bending=1e-2)` (every hinge stiff at dt 1/60: gamma / J M^-1 J^T
+    below 1e-3), float32, 2 s: warm-started in full, PGS(20) stretched its rods by up to 59x, SoftStep 592x,
+    Jacobi(20) 401x, and PGS(200) gained 100 J and 216%, while Direct (the same linearised rows, solved exactly)
+    held 2%. Scaled: PGS(200) 1.9% on Direct's path (lowest point 1 mm apart at 2 s), PGS(20) 14%, SoftStep 11%,
+    Jacobi(20) 155% (Jacobi's and PGS's rods still gain energy through their own warm start there: see the `PGS`
+    warm_start_factor). A hanging 30-link chain of distance rows of compliance 1e-8 (float64, PGS(20), 4 s):
+    stretched 8e11x, 12% scaled. The scale is smooth in alpha (a fitted leaf); hard rows (alpha = 0) and rods keep
+    their whole warm start."""
+    if R.compliant(f) is None:
+        return lam
+    return lam * jnp.where(f.alpha > 0, f.alpha * L.safe_reciprocal(f.alpha + h * h * f.s), 1)
+
+
+def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, h, factor=1.0, gradient: bool = True):
+    """Apply `factor` times the previous impulses (ropes clamped, undefined constraints dropped, a set's compliant
+    rows scaled for the (sub)step of length h: `warm_rows`) to `v`. Returns (v, lam): the velocities after the
+    warm start and the accumulated impulses to iterate from."""
     if not gradient:
         lam_ws = lax.stop_gradient(lam_ws)
     if not (isinstance(factor, (int, float)) and factor == 1):     # a plain 1 costs nothing
         lam_ws = tuple(l * factor for l in lam_ws)
-    lam = tuple(clamp_ropes(blk, l) * (f.k > 0).astype(f.k.dtype) for blk, f, l in zip(sys.topology.blocks, fr, lam_ws))
+    lam = tuple(clamp_ropes(blk, warm_rows(f, l, h)) * (f.k > 0).astype(f.k.dtype)
+                for blk, f, l in zip(sys.topology.blocks, fr, lam_ws))
     return apply_impulses(sys, v, fr, lam), lam
 
 
@@ -121,16 +152,25 @@ class _Rows(NamedTuple):
     k: Any
 
 
-def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None):
+def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_alpha=None, sets: bool = True):
     """One pass of position-level projection over the rod and rope colours, (_, (p, mu)) -> (p, mu): each
     constraint, with d = p_j - p_i, moves its particles along d by dmu = (|d| - rest - alpha mu) / (w_i + w_j +
     alpha) (p_i += w_i n dmu, p_j -= w_j n dmu; mu > 0 pulls), its accumulated mu clamped >= 0 for ropes (a rope
     never pushes). Gauss-Seidel colour by colour (XPBD, split impulses' position pass), or, with
     `jacobi_relaxation`, every constraint from the same p, the changes scaled by it and summed (Jacobi). `rest`:
-    per-block target lengths; `alpha`: compliance / h^2 (0: a rigid projection)."""
+    per-block target lengths; `alpha`: compliance / h^2 (0: a rigid projection).
+
+    A constraint set's rows are evaluated at the current positions (nonlinear Gauss-Seidel) and move by
+    dmu = (C_lib - a mu) / (J M^-1 J^T + a), p += M^-1 J^T dmu, with a = `set_alpha(compliance)` (XPBD: the
+    set's compliance / h^2); `set_alpha` None keeps a set's compliant rows out of the pass (split impulses: a
+    compliant row's stretch is its spring's, not an error to correct). `sets=False` leaves the sets' rows out
+    (split impulses: Baumgarte corrects them through the velocities)."""
     topo = sys.topology
     w_pairs = []
     for blk in topo.blocks:
+        if blk.generic is not None:
+            w_pairs.append(None)
+            continue
         wi, wj = L.gather_pair(topo, blk, sys.w)
         wi, wj = wi[0], wj[0]
         w_pairs.append((wi, wj, L.safe_reciprocal(wi + wj + alpha)))
@@ -154,39 +194,154 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None):
         q = d * (((new - mu) if blk.has_rope else dmu) * inv)
         return wi * q, -wj * q, new
 
+    def update_set(p, blk, rows):
+        ssys, mu = rows
+        f = R.set_frame(topo, blk, sys.cons[blk.generic], ssys, p, sys.w)
+        a = jnp.zeros_like(f.C) if set_alpha is None else set_alpha(f.alpha)
+        dmu = (f.C - a * mu) * L.safe_reciprocal(f.s + a) * (f.k > 0).astype(f.C.dtype)
+        if set_alpha is None:
+            dmu = dmu * (f.alpha == 0).astype(dmu.dtype)
+        if jacobi_relaxation is not None:
+            dmu = jacobi_relaxation * dmu
+        new = clamp_ropes(blk, mu + dmu)
+        return f.J * (f.w * (new - mu)), new
+
     def colour(p, blk, rows):
         qi, qj, new = update(p, blk, rows)
         return L.add_pair(topo, blk, p, qi, qj), new
+
+    def colour_set(p, blk, rows):
+        q, new = update_set(p, blk, rows)
+        return L.add_rows(topo, blk, p, q), new
 
     def sweep(_, carry):
         p, mu = carry
         mu = list(mu)
         dp = jnp.zeros_like(p)
-        for c, (blk, r, (wi, wj, k)) in enumerate(zip(topo.blocks, rest, w_pairs)):
-            if jacobi_relaxation is None:
-                p, mu[c] = L.each_colour(blk, colour, p, (r, wi, wj, k, mu[c]))
+        for c, (blk, r, wk) in enumerate(zip(topo.blocks, rest, w_pairs)):
+            if blk.generic is not None:
+                if not sets:
+                    continue
+                rows = (sys.sets[blk.generic], mu[c])
+                if jacobi_relaxation is None:
+                    p, mu[c] = L.each_colour(blk, colour_set, p, rows)
+                else:
+                    q, mu[c] = update_set(p, blk, rows)
+                    dp = L.add_rows(topo, blk, dp, q)
+            elif jacobi_relaxation is None:
+                p, mu[c] = L.each_colour(blk, colour, p, (r, *wk, mu[c]))
             else:
-                qi, qj, mu[c] = update(p, blk, (r, wi, wj, k, mu[c]))
+                qi, qj, mu[c] = update(p, blk, (r, *wk, mu[c]))
                 dp = L.add_pair(topo, blk, dp, qi, qj)
         return (p if jacobi_relaxation is None else p + dp), tuple(mu)
     return sweep
 
 
-def split_position_pass(sys: System, x, iterations: int, jacobi_relaxation=None):
-    """Split impulses' position pass: positions `x`, after the velocity step, are projected onto the rest lengths
-    by `iterations` rigid `position_sweep`s from mu = 0 (a rope only while stretched). Velocities are not
-    touched, so the correction adds no kinetic energy, and the whole error can go in one step: this is Box2D
-    v2's position solver (nonlinear Gauss-Seidel) and Cline and Pai's post-stabilisation.
+def split_slop(sys: System, fr: tuple, v, h, beta, share) -> tuple:
+    """Per block, split impulses' slop (m): the position error each constraint may keep and have Baumgarte
+    correct through the velocities. Twice the steady error that its rotation leaves with Baumgarte,
+    h^2 |u_t|^2 / (2 d beta) (u_t the relative velocity across it): that error is the rotation's
+    centripetal correction, not an error to remove; and at least `share` times the rest length, at most a tenth
+    of it. Whatever is beyond it is not rotation (a stretched start, sweeps that cannot hold a chain) and is
+    projected away without touching the velocities (`split_position_pass`)."""
+    topo = sys.topology
+    out = []
+    for blk, f, r in zip(topo.blocks, fr, sys.rest):
+        if blk.generic is not None:     # a constraint set has no length scale: Baumgarte corrects all of it
+            out.append(jnp.full_like(f.C, jnp.inf))
+            continue
+        vi, vj = L.gather_pair(topo, blk, v)
+        u = vj - vi
+        ut = u - f.n * jnp.sum(u * f.n, axis=0)
+        steady = h * h * jnp.sum(ut * ut, axis=0) * L.safe_reciprocal(f.dist * jnp.maximum(beta, 1e-3))
+        out.append(jnp.clip(steady, share * r, 0.1 * r))
+    return tuple(out)
 
-    Measured (tests/test_split_impulses.py; float64, dt 1/240): a 20-link chain with a 20:1 end mass whose links
-    start 25% too long is 0.02% stretched after 1 s with PGS(20). The linear pseudo-velocity solve it replaces
-    (J v_p = -(beta / h) C at the start of the step, from v_p = 0, and x += h (v + v_p)) left it 82% stretched,
-    and 66 to 92% when warm started or taking the step's own drift into account: it corrects the error the step
-    started with, not the one the unconverged velocity sweeps make, and a warm-started correction overshoots once
-    it has worked."""
-    mu0 = tuple(jnp.zeros(b.shape, x.dtype) for b in sys.topology.blocks)
-    sweep = position_sweep(sys, sys.rest, jnp.zeros((), x.dtype), jacobi_relaxation)
+
+def split_position_pass(sys: System, x, iterations: int, slop: tuple, jacobi_relaxation=None):
+    """Split impulses' position pass: positions `x` (after the velocity step) projected by `iterations` rigid
+    `position_sweep`s from mu = 0 onto lengths within `slop` (a share of each rest length) of the rest lengths
+    (a rope only while stretched beyond it); velocities untouched, so the correction adds no kinetic energy.
+    Box2D v2's position solver (nonlinear Gauss-Seidel), or Jacobi sweeps with the given relaxation.
+
+    Split impulses are Baumgarte stabilisation within the slop (`velocity_bias` clips C to it) and this
+    projection beyond it (docs/solvers.md, "Split impulses"). Inside the slop the step is exactly Baumgarte's, so
+    a system without position error moves as with Baumgarte: a rotating rod's centripetal correction comes from
+    its steady error h^2 |u_t|^2 / (2 d beta), which the slop must hold (0.5% holds a double pendulum at 240 Hz;
+    0.25% left it 3.8x less accurate). A larger error (a stretched start, a chain the sweeps cannot hold) is
+    removed here without becoming kinetic energy."""
+    topo = sys.topology
+    rest = []
+    for blk, r, s in zip(topo.blocks, sys.rest, slop):
+        if blk.generic is not None:     # not projected (its slop is unbounded): `position_sweep(sets=False)`
+            rest.append(r)
+            continue
+        xi, xj = L.gather_pair(topo, blk, x)
+        dist = L.safe_length(xj - xi)[0]
+        rest.append(jnp.where(jnp.abs(dist - r) > s, r, dist))
+    mu0 = tuple(jnp.zeros(b.shape, x.dtype) for b in topo.blocks)
+    sweep = position_sweep(sys, tuple(rest), jnp.zeros((), x.dtype), jacobi_relaxation, sets=False)
     return lax.fori_loop(0, iterations, sweep, (x, mu0))[0]
+
+
+def shake_sweep(sys: System, fr0: tuple, h, tol=0.0):
+    """One SHAKE pass over the constraint colours, (_, (x, v, mu)) -> (x, v, mu) (RATTLE's position stage):
+    each constraint moves along its start-of-step direction n0 (`fr0`) by dmu = (|d|^2 - L^2) / (2 (w_i + w_j)
+    d . n0), x_i += w_i n0 dmu, x_j -= w_j n0 dmu, and the velocities by the same divided by h; a rope's
+    accumulated mu clamped >= 0; Gauss-Seidel colour by colour. A constraint whose residual is at or below `tol`
+    (|d^2 - L^2| / (2 L^2)) is not updated. Moving along n0 rather than the current direction is what keeps a
+    rotating rod's kinetic energy: the kick is then orthogonal to its velocity. A constraint set's rows move
+    C_lib(x) to 0 along their start-of-step gradient J0 (`shake_set`)."""
+    topo = sys.topology
+    rest2 = tuple(r * r for r in sys.rest)
+
+    def update(x, blk, f, r2, mu):
+        xi, xj = L.gather_pair(topo, blk, x)
+        d = xj - xi
+        dist, _ = L.safe_length(d)
+        res = jnp.sum(d * d, axis=0) - r2
+        # a rod of rest length 0 (or one that turned far within the step) has d . n0 near 0 and would be flung
+        # (1e44 m): d . n0 is taken as at least |d| / 2, which bounds the move by |d| and leaves others unchanged
+        along = jnp.sum(d * f.n, axis=0)
+        live = (f.k > 0) & (along > 0)
+        rhs = jnp.where(live, res / (2 * jnp.where(live, jnp.maximum(along, 0.5 * dist), 1)), 0)
+        if getattr(blk, "star", False):        # a star's rows share the hub: solved together, every row updated
+            upd = L.block_solve(topo, blk, f, rhs)
+        else:
+            upd = jnp.where(live & (jnp.abs(res) > tol * 2 * r2), rhs * f.k, 0)
+        new = clamp_ropes(blk, mu + upd)
+        p = f.n * (new - mu)
+        return f.wi * p, -f.wj * p, new
+
+    def colour(xv, blk, rows):
+        x, v = xv
+        pi, pj, new = update(x, blk, *rows)
+        return (L.add_pair(topo, blk, x, pi, pj), L.add_pair(topo, blk, v, pi / h, pj / h)), new
+
+    def shake_set(xv, blk, rows):
+        """C_lib(x) moved to 0 along the start-of-step gradient J0 (the row's mu = C_lib / (J(x) M^-1 J0^T), at
+        least half of sqrt(J M^-1 J^T J0 M^-1 J0^T) as for a rod); compliant rows are springs (RATTLE's
+        `_spring_kick`) and take no part."""
+        x, v = xv
+        f0, ssys, mu = rows
+        f = R.set_frame(topo, blk, sys.cons[blk.generic], ssys, x, sys.w)
+        along = jnp.sum(f.w * jnp.sum(f.J * f0.J, axis=0), axis=0)
+        live = (f0.k > 0) & (f.k > 0) & (along > 0) & (f0.alpha == 0)
+        floor = 0.5 * jnp.sqrt(f.s * f0.s)
+        new = clamp_ropes(blk, mu + jnp.where(live, f.C / jnp.where(live, jnp.maximum(along, floor), 1), 0))
+        q = f0.J * (f0.w * (new - mu))
+        return (L.add_rows(topo, blk, x, q), L.add_rows(topo, blk, v, q / h)), new
+
+    def sweep(_, carry):
+        x, v, mu = carry
+        mu = list(mu)
+        for c, (blk, f, r2) in enumerate(zip(topo.blocks, fr0, rest2)):
+            if blk.generic is not None:
+                (x, v), mu[c] = L.each_colour(blk, shake_set, (x, v), (f, sys.sets[blk.generic], mu[c]))
+            else:
+                (x, v), mu[c] = L.each_colour(blk, colour, (x, v), (f, r2, mu[c]))
+        return x, v, tuple(mu)
+    return sweep
 
 
 # ---- the start and end of a velocity-level (sub)step with contacts (PGS, Jacobi) ------------------------------
@@ -241,31 +396,33 @@ def grid_step(sys, x, v, h, solve):
     return lax.fori_loop(0, GRID_ATTEMPTS, attempt, found + (out, jnp.ones((), bool)))[2]
 
 
-def contact_begin(sys, x, v, lam_ws, beta, h, split: bool, warm: bool, factor=1.0, gradient: bool = True,
-                  found=None, slop=0.0):
-    """Gravity, the rods' frames and biases (no Baumgarte bias when `split`), the contact rows, and the warm
-    start of rods and contacts (scaled by `factor`; no gradient through it unless `gradient`). A grid model
+def contact_begin(sys, x, v, lam_ws, beta, h, split, warm: bool, factor=1.0, gradient: bool = True,
+                  found=None, contact_slop=0.0):
+    """Gravity, the rods' frames and biases (`split`: split impulses' slop share, or None), the contact rows (which
+    keep `contact_slop` of overlap, `contact.rows`), and the warm start of rods and contacts (scaled by `factor`;
+    no gradient through it unless `gradient`). A grid model
     passes its candidate pairs `found` = (partners, overflow) (`grid_step`).
-    Returns (v_free, v, fr, bias, obs, pairs, lam, imp): v_free is the velocity after gravity, before any
-    impulse (what the time-of-impact correction compares with)."""
+    Returns (v_free, v, fr, bias, obs, pairs, lam, imp, slop): v_free is the velocity after gravity, before any
+    impulse (what the time-of-impact correction compares with); slop: split impulses' (`split_slop`) or None."""
     topo, cs = sys.topology, sys.contact
     lam_ws, imp_ws = lam_ws
     v0, v = v, sys.apply_gravity(v, h)
     v_free = v
     fr = frames(sys, x)
-    bias = velocity_bias(topo, fr, jnp.zeros((), x.dtype), h, v) if split else velocity_bias(topo, fr, beta, h)
+    slop = None if split is None else split_slop(sys, fr, v, h, beta, split)
+    bias = velocity_bias(topo, fr, beta, h, slop)
     partners, overflow = (None, None) if found is None else found
-    obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h, partners, slop)
+    obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h, partners, contact_slop)
     if not warm:
         lam, imp = tuple(jnp.zeros_like(f.C) for f in fr), contact.zero_impulses(topo, cs.ct, x.dtype)
     else:
         if not gradient:
             imp_ws = lax.stop_gradient(imp_ws)
-        v, lam = warm_start(sys, v, fr, lam_ws, factor, gradient)
+        v, lam = warm_start(sys, v, fr, lam_ws, h, factor, gradient)
         v, imp = contact.warm_start(cs, sys.w, v, obs, pairs, imp_ws, factor)
     if partners is not None:
         imp = imp._replace(partners=partners, overflow=overflow)
-    return v_free, v, fr, bias, obs, pairs, lam, imp
+    return v_free, v, fr, bias, obs, pairs, lam, imp, slop
 
 
 def restitution_phases(sys, v_free, obs, pairs, iterations: int, carry, body):
@@ -296,14 +453,14 @@ def restitution_phases(sys, v_free, obs, pairs, iterations: int, carry, body):
     return jax.tree.map(mix, compressed, bounced)
 
 
-def contact_end(sys, x, v, v_free, obs, pairs, imp, h, passes=1, rods_pass=None, slop=0.0):
+def contact_end(sys, x, v, v_free, obs, pairs, imp, h, passes=1, rods_pass=None, contact_slop=0.0):
     """New positions: x + h v with the time-of-impact correction (a particle whose velocity changed at tau within
     the step moved at its old velocity until then: x' = x + tau v_free + (h - tau) v'), then `rods_pass` (split
     impulses' position pass of the rods, x -> x, or None), then the position safety pass of the contacts
-    (`passes`, `slop`: see contact.project_overlaps)."""
+    (`passes`, `contact_slop`: see contact.project_overlaps)."""
     cs = sys.contact
     dx = -contact.impact_times(cs, obs, pairs, imp, x.shape) * (v - v_free)
     x = x + h * v + dx
     if rods_pass is not None:
         x = rods_pass(x)
-    return contact.project_overlaps(cs, sys.w, x, passes, pairs, slop)
+    return contact.project_overlaps(cs, sys.w, x, passes, pairs, contact_slop)

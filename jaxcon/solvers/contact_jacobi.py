@@ -22,6 +22,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from jaxcon.core import layout as L
+from jaxcon.core import rows as R
 from jaxcon.solvers.common import clamp_ropes
 from jaxcon.solvers.contact import Impulses, Rows, _pair_total, _solve_row, pair_index
 
@@ -31,6 +32,9 @@ def rod_degree(topo, fr, like):
     c = jnp.zeros((1,) + like.shape[1:], like.dtype)
     for blk, f in zip(topo.blocks, fr):
         one = (f.k > 0).astype(like.dtype)[None]
+        if blk.generic is not None:          # a set's row counts at each of its particles
+            c = L.add_rows(topo, blk, c, jnp.broadcast_to(one[:, None], (1,) + f.w.shape))
+            continue
         c = L.add_pair(topo, blk, c, one, one)
     return c
 
@@ -67,6 +71,16 @@ def rod_pass(topo, fr, bias, v, lam, count, relax):
     dv = jnp.zeros_like(v)
     new = []
     for blk, f, b, l in zip(topo.blocks, fr, bias, lam):
+        if blk.generic is not None:          # a set's rows: the same update through rows.rel / rows.apply
+            if count is None:
+                k = relax * f.k
+            else:
+                c = L.gather_rows(topo, blk, count)[0]
+                k = L.safe_reciprocal(jnp.sum(c * f.w * jnp.sum(f.J * f.J, axis=0), axis=0)) * (f.k > 0)
+            nl = clamp_ropes(blk, l + (R.rel(topo, blk, f, v) + b) * k)
+            dv = R.apply(topo, blk, f, dv, nl - l)
+            new.append(nl)
+            continue
         vi, vj = L.gather_pair(topo, blk, v)
         rel = jnp.sum((vj - vi) * f.n, axis=0)
         if count is None:

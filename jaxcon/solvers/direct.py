@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import functools
+
+import jax
 from typing import Any
 
 import jax.numpy as jnp
@@ -9,11 +11,12 @@ import numpy as np
 from jax.lax.linalg import tridiagonal_solve
 
 from jaxcon.core import layout as L
+from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
-from jaxcon.solvers.common import check_stabilization, curvature_rate
+from jaxcon.solvers.common import check_stabilization
 
 _METHODS = ("auto", "dense", "tridiagonal")
 
@@ -70,11 +73,11 @@ class Direct(Solver):
         Chains of fewer than 9 constraints are always solved densely (same system, same result).
       regularisation: relative diagonal regularisation (constraint force mixing), >= 0, a leaf; values below
         1e3 machine epsilons are raised to that.
-      stabilization: 'baumgarte' (default, above) or 'split' (static): split impulses. The same matrix is solved
-        for two right-hand sides, (J M^-1 J^T) lam = J v + curvature (no position error: lam is the physical
-        impulse; the curvature term as in `PGS`) and (J M^-1 J^T) lam_p = C / h, the whole error;
-        v_p = -M^-1 J^T lam_p moves the positions of the substep, x += h (v + v_p), and is discarded, so
-        position correction adds no kinetic energy. `beta` is not used.
+      stabilization: 'baumgarte' (default, above) or 'split' (static): split impulses, as in `PGS`, with exact
+        linear corrections: the same matrix is solved for J v + (beta / h) C over the constraints within their
+        adaptive slop (lam, the physical impulse), and for beta C over those beyond it, a position correction
+        that moves the positions of the substep and does not touch the velocities.
+      slop: split impulses' slop, as in `PGS`.
     """
 
     #: assembles its matrices in user particle order, so `jc.batched_rollout` batches it with `jax.vmap`
@@ -86,9 +89,11 @@ class Direct(Solver):
     method: str = static_field(default="auto")
     regularisation: Any = 1e-6
     stabilization: str = static_field(default="baumgarte")
+    slop: Any = 0.005
 
     def __post_init__(self):
         check_stabilization("Direct", self.stabilization)
+        check_scalar("Direct", "slop", self.slop, 0.0, 1.0)
         check_scalar("Direct", "beta", self.beta, 0.0, 1.0)
         check_int("Direct", "substeps", self.substeps, 1)
         check_scalar("Direct", "regularisation", self.regularisation, 0.0, 1.0)
@@ -106,11 +111,13 @@ class Direct(Solver):
 
     def _step(self, sys, x, v, lam, dt):
         topo = sys.topology
-        if topo.has_ropes:
+        if topo.has_ropes or any(info.unilateral for info in topo.sets):
             raise ValueError(
-                "Direct: the model has ropes (unilateral constraints), which Direct does not take; "
-                "use jc.PGS, jc.SoftStep or jc.RATTLE"
+                "Direct: the model has ropes or unilateral constraints, which Direct does not take (an "
+                "inequality needs a complementarity solve); use jc.PGS, jc.SoftStep or jc.RATTLE"
             )
+        if topo.has_sets:
+            return self._step_rows(sys, x, v, lam, dt)
         tri = self._use_tridiagonal(topo)
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
@@ -119,17 +126,118 @@ class Direct(Solver):
         eps = _regularisation(self.regularisation, dtype)
 
         split = self.stabilization == "split"
+        share = jnp.asarray(self.slop, dtype)
 
         def substep(x, v, _lam, h):
             v = sys.apply_gravity(v, h)
             xu, vu = L.particles_out(topo, x), L.particles_out(topo, v)  # [n, dim], user order
             solve = _chain_solve if tri else functools.partial(_dense_solve, topo=topo)
-            lam_u, dvs = solve(xu, vu, w, rest, (1 if split else beta) / h, eps, split=h if split else None)
+            lam_u, dvs = solve(xu, vu, w, rest, beta / h, eps, slop=(share, h) if split else None)
             v = L.particles_in(topo, vu + dvs[0])
-            move = v if not split else v + L.particles_in(topo, dvs[1])    # split: + the pseudo-velocity
+            move = v if not split else v + L.particles_in(topo, dvs[1] / h)    # split: the excess's correction
             return x + h * move, v, L.constraints_in(topo, lam_u)
 
         return substepped(substep, self.substeps, x, v, lam, dt)
+
+
+    def _step_rows(self, sys, x, v, lam, dt):
+        """The step of a model with constraint sets: every row's Jacobian assembled densely in user order
+        (`_rows_solve`); rods as above, a set's compliant rows with alpha / h^2 on their diagonal (implicit
+        springs) and bias C / h."""
+        topo = sys.topology
+        dtype = x.dtype
+        beta = jnp.asarray(self.beta, dtype)
+        w = L.per_particle_out(topo, sys.w)
+        rest = L.constraints_out(topo, sys.rest)[: topo.m_pairs]
+        eps = _regularisation(self.regularisation, dtype)
+        split = self.stabilization == "split"
+        share = jnp.asarray(self.slop, dtype)
+        sets = _user_sets(sys)
+
+        def substep(x, v, _lam, h):
+            v = sys.apply_gravity(v, h)
+            xu, vu = L.particles_out(topo, x), L.particles_out(topo, v)
+            lam_u, dvs = _rows_solve(xu, vu, w, rest, sets, topo, beta, h, eps, share if split else None)
+            v = L.particles_in(topo, vu + dvs[0])
+            move = v if not split else v + L.particles_in(topo, dvs[1] / h)
+            return x + h * move, v, L.constraints_in(topo, lam_u)
+
+        return substepped(substep, self.substeps, x, v, lam, dt)
+
+
+def _user_sets(sys):
+    """Per constraint set: (fn, particles [m, k] user indices, params {[m, ...]}, compliance [m]) in user
+    order, from the system's table layout."""
+    out = []
+    blocks = [b for b in sys.topology.blocks if b.generic is not None]
+    for blk, info, con, ssys in zip(blocks, sys.topology.sets, sys.cons, sys.sets):
+        flat = blk.flat.array
+        order = flat[np.argsort(blk.src.array.reshape(-1)[flat], kind="stable")]   # user order within the set
+
+        def user(a):
+            a = a.reshape(a.shape[: a.ndim - 2] + (-1,))[..., order]
+            return jnp.moveaxis(a, -1, 0)
+        out.append((con.fn, info.particles, jax.tree.map(user, ssys.params), user(ssys.compliance)))
+    return out
+
+
+def _rows_solve(xu, vu, w, rest, sets, topo, beta, h, eps, slop):
+    """One dense solve over every row (rods and sets) of (J M^-1 J^T + Gamma) lam = J v + bias, Gamma =
+    alpha / h^2 on a set's compliant rows (their bias C / h; the others beta / h C). With split impulses' `slop`
+    (the share), a rod's C beyond its adaptive slop (`_rhs`) moves to a second right-hand side, h beta / h C, the
+    position correction; a set's rows have no length scale and keep Baumgarte's bias. Returns (lam [m] user
+    order, velocity changes as `_dense_solve`)."""
+    n, dim = xu.shape
+    J, C, alpha = _all_rows(xu, rest, sets, topo)
+    J = J.reshape(-1, n * dim)
+    wd = jnp.repeat(w, dim)
+    A = (J * wd) @ J.T
+    diag = jnp.diagonal(A)
+    ok = diag > 0
+    g = alpha / (h * h)
+    A = jnp.where(ok[:, None] & ok[None, :], A, 0) + jnp.diag(jnp.where(ok, eps * diag + g, 1))
+    rel = -(J @ vu.reshape(-1))
+    corr = jnp.where(alpha > 0, C / h, beta / h * C)
+    if slop is None:
+        cols = [rel + corr]
+    else:
+        inside = jnp.ones(C.shape, bool)
+        if topo.m_pairs:
+            i, j, mp = topo.i, topo.j, topo.m_pairs
+            dist, nrm = L.safe_norm(xu[j] - xu[i], axis=-1)
+            u = vu[j] - vu[i]
+            ut = u - nrm * jnp.sum(u * nrm, -1, keepdims=True)
+            steady = h * h * jnp.sum(ut * ut, -1) * L.safe_reciprocal(dist * jnp.maximum(beta, 1e-3))
+            rod_in = jnp.abs(C[:mp]) <= jnp.clip(steady, slop * rest, 0.1 * rest)
+            inside = inside.at[:mp].set(rod_in)
+        cols = [rel + jnp.where(inside, corr, 0), h * jnp.where(inside, 0, corr)]
+    lams = jnp.linalg.solve(A, jnp.stack([jnp.where(ok, c, 0) for c in cols], -1))
+    changes = tuple((J.T @ lams[:, c]).reshape(n, dim) * w[:, None] for c in range(lams.shape[1]))
+    return lams[:, 0], changes
+
+
+def _all_rows(xu, rest, sets, topo, values=False):
+    """Every row at positions xu [n, dim], user order: (J [m, n, dim] of each row's C_user (a rod's
+    L - |x_j - x_i|), C_lib [m], compliance [m]); with `values`, C_lib alone."""
+    n, dim = xu.shape
+    rows_J, rows_C, rows_a = [], [], []
+    if topo.m_pairs:
+        i, j = topo.i, topo.j
+        dist, nrm = L.safe_norm(xu[j] - xu[i], axis=-1)
+        rows_C.append(dist - rest)
+        if not values:
+            Jp = jnp.zeros((topo.m_pairs, n, dim), xu.dtype).at[np.arange(topo.m_pairs), i].set(nrm)
+            rows_J.append(Jp.at[np.arange(topo.m_pairs), j].set(-nrm))
+            rows_a.append(jnp.zeros(topo.m_pairs, xu.dtype))
+    for fn, parts, params, comp in sets:
+        C, J, _ = R.evaluate(fn, xu[parts], params)
+        rows_C.append(-C)
+        if not values:
+            rows_J.append(jnp.zeros((len(parts), n, dim), xu.dtype).at[np.arange(len(parts))[:, None], parts].add(J))
+            rows_a.append(comp)
+    if values:
+        return jnp.concatenate(rows_C)
+    return jnp.concatenate(rows_J), jnp.concatenate(rows_C), jnp.concatenate(rows_a)
 
 
 @functools.lru_cache(maxsize=64)
@@ -155,11 +263,12 @@ def _coupling(topo):
     return tuple(np.concatenate(x) for x in (a, b, p, s))
 
 
-def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, split=None):
+def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, slop=None):
     """One dense solve of J W J^T lam = b. The matrix is assembled entry by entry from the pairs of
     constraints that share a particle (O(sum of squared degrees), not O(m^2 n)); the solve is O(m^3).
-    Returns (lam, velocity changes): one change (-W J^T lam) for Baumgarte, or, with `split` (the (sub)step
-    h), the velocity change and the pseudo-velocity, from one solve with two right-hand sides."""
+    Returns (lam, velocity changes): one change (-W J^T lam) for Baumgarte, or, with split impulses' `slop`, the
+    velocity change (the bias of C clipped to the slop) and the correction of the rest (a position change),
+    from one solve with two right-hand sides (`_rhs`)."""
     i, j, m = topo.i, topo.j, topo.m
     dist, nrm = L.safe_norm(xu[j] - xu[i], axis=-1)          # [m], [m, dim]
     ok = ((w[i] + w[j]) > 0) & (dist > 0)
@@ -169,8 +278,7 @@ def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, split=None):
     both = ok[:, None] & ok[None, :]
     diag = jnp.diagonal(A)
     A = jnp.where(both, A, 0) + jnp.diag(jnp.where(ok, eps * diag, 1))
-    b = _rhs(ok, nrm, dist, vu[j] - vu[i], rate * (dist - rest), split)
-    lams = jnp.linalg.solve(A, b)                              # [m, 1 or 2]
+    lams = jnp.linalg.solve(A, _rhs(ok, nrm, vu[j] - vu[i], dist - rest, rest, rate, slop))     # [m, 1 or 2]
 
     def change(lam):
         p = nrm * lam[:, None]                                   # J^T lam: -p at i, +p at j
@@ -179,16 +287,27 @@ def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, split=None):
     return lams[:, 0], tuple(change(lams[:, c]) for c in range(lams.shape[1]))
 
 
-def _rhs(ok, nrm, dist, u, correction, split):
-    """[m, 1] right-hand side J v + (beta / h) C (u: the relative velocities [m, dim]), or with split impulses
-    (`split`: the (sub)step h) [m, 2]: J v plus the curvature of the motion (common.curvature_rate), and
-    (beta / h) C, apart."""
+def _rhs(ok, nrm, u, C, rest, rate, slop):
+    """[m, 1] right-hand side J v + rate C (u: the relative velocities [m, dim]; rate = beta / h), or with split
+    impulses' `slop` = (share, h) [m, 2]: J v + rate C where |C| is within each rod's slop (as
+    `common.split_slop`: twice its rotation's steady Baumgarte error, at least share L, at most L / 10), and
+    beta C where it is beyond (a position change: the exact linear correction, at Baumgarte's rate, gentler
+    where J M^-1 J^T is nearly singular, as on a cloth with shear rods)."""
     rel = jnp.sum(u * nrm, -1)
-    cols = [rel + curvature_rate(nrm, dist, u, split, axis=-1), correction] if split is not None else [rel + correction]
+    if slop is None:
+        cols = [rel + rate * C]
+    else:
+        share, h = slop
+        ut = u - nrm * jnp.sum(u * nrm, -1, keepdims=True)
+        dist = C + rest
+        steady = h * jnp.sum(ut * ut, -1) * L.safe_reciprocal(dist * jnp.maximum(rate, 1e-3 / h))
+        inside = jnp.abs(C) <= jnp.clip(steady, share * rest, 0.1 * rest)
+        cols = [rel + rate * jnp.where(inside, C, 0), h * rate * jnp.where(inside, 0, C)]
     return jnp.stack([jnp.where(ok, c, 0) for c in cols], -1)
 
 
-def _chain_solve(xu, vu, w, rest, rate, eps, *, split=None):
+def _chain_solve(xu, vu, w, rest, rate, eps, *, slop=None):
+    """`_dense_solve` for a simple chain, in O(n) (tridiagonal)."""
     # Constraint k joins particle k and k+1; n_k points from k to k+1 (lam is orientation-independent).
     dist, nrm = L.safe_norm(xu[1:] - xu[:-1], axis=-1)        # [m], [m, dim]
     ok = ((w[:-1] + w[1:]) > 0) & (dist > 0)
@@ -199,7 +318,7 @@ def _chain_solve(xu, vu, w, rest, rate, eps, *, split=None):
     dl = jnp.concatenate([zero, off])
     du = jnp.concatenate([off, zero])
     d = jnp.where(ok, diag * (1 + eps), 1)
-    lams = tridiagonal_solve(dl, d, du, _rhs(ok, nrm, dist, vu[1:] - vu[:-1], rate * (dist - rest), split))
+    lams = tridiagonal_solve(dl, d, du, _rhs(ok, nrm, vu[1:] - vu[:-1], dist - rest, rest, rate, slop))
 
     def change(lam):
         p = nrm * lam[:, None]                                     # [m, dim]

@@ -9,6 +9,7 @@ import numpy as np
 from jax import lax
 
 from jaxcon.core import layout as L
+from jaxcon.core import rows as R
 from jaxcon.core.checks import check_bool, check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
@@ -20,18 +21,22 @@ from jaxcon.solvers.common import (
     contact_begin,
     contact_end,
     frames,
+    gamma,
     grid_step,
     restitution_phases,
+    row_solve,
     split_position_pass,
+    split_slop,
     velocity_bias,
     warm_start,
 )
 
 
 def max_degree(topo) -> int:
-    """Largest number of constraints sharing one free particle (static, from the topology; a fixed particle takes
-    no velocity change, so its constraints do not compete); at least 1."""
-    deg = np.bincount(np.concatenate([topo.i, topo.j]), minlength=topo.n) * ~topo.fixed
+    """Largest number of constraints (of every kind) sharing one free particle (static, from the topology; a
+    fixed particle takes no velocity change, so its constraints do not compete); at least 1."""
+    ends = [topo.i, topo.j] + [info.particles.reshape(-1) for info in topo.sets]
+    deg = np.bincount(np.concatenate(ends), minlength=topo.n) * ~topo.fixed
     return max(int(deg.max(initial=0)), 1)
 
 
@@ -64,10 +69,12 @@ class Jacobi(Solver):
       relaxation: scale of the summed impulse in (0, 2], a differentiable leaf; None: 1 / (largest number of
         constraints at one particle) of the model being solved, or mass splitting for a model with contacts
         (a fixed value there scales every rod and contact row alike).
-      warm_start: start from the previous step's impulses (static).
+      warm_start: start from the previous step's impulses (static); a constraint set's compliant rows from a
+        share of theirs, none where the spring is stiff for the step (`common.warm_rows`).
       substeps: (sub)steps per step, static, >= 1.
       stabilization: 'baumgarte' (default) or 'split' (static): split impulses as in `PGS`, the position
         projection by Jacobi sweeps with the rods' relaxation (1 / largest degree by default).
+      slop: split impulses' slop, as in `PGS`.
     """
 
     iterations: int = static_field(default=20)
@@ -76,9 +83,11 @@ class Jacobi(Solver):
     warm_start: bool = static_field(default=True)
     substeps: int = static_field(default=1)
     stabilization: str = static_field(default="baumgarte")
+    slop: Any = 0.005
 
     def __post_init__(self):
         check_stabilization("Jacobi", self.stabilization)
+        check_scalar("Jacobi", "slop", self.slop, 0.0, 1.0)
         check_int("Jacobi", "iterations", self.iterations, 1)
         check_int("Jacobi", "substeps", self.substeps, 1)
         check_bool("Jacobi", "warm_start", self.warm_start)
@@ -97,34 +106,36 @@ class Jacobi(Solver):
         beta = jnp.asarray(self.beta, dtype)
         relax = (jnp.asarray(1.0 / max_degree(topo), dtype) if self.relaxation is None
                  else jnp.asarray(self.relaxation, dtype))
+        share = jnp.asarray(self.slop, dtype)
 
         def substep(x, v, lam_ws, h):
             v = sys.apply_gravity(v, h)
-            fr = frames(sys, x)
             split = self.stabilization == "split"
-            bias = (velocity_bias(topo, fr, jnp.zeros((), dtype), h, v) if split
-                    else velocity_bias(topo, fr, beta, h))
+            fr = frames(sys, x)
+            slop = split_slop(sys, fr, v, h, beta, share) if split else None
+            bias = velocity_bias(topo, fr, beta, h, slop)
             if self.warm_start:
-                v, lam = warm_start(sys, v, fr, lam_ws)
+                v, lam = warm_start(sys, v, fr, lam_ws, h)
             else:
                 lam = tuple(jnp.zeros_like(f.C) for f in fr)
+
+            gs = tuple(gamma(f, h) for f in fr)
 
             def iterate(_, carry):
                 v, lam = carry
                 new = []
                 dv = jnp.zeros_like(v)
-                for blk, f, b, l in zip(topo.blocks, fr, bias, lam):
-                    vi, vj = L.gather_pair(topo, blk, v)
-                    rel = jnp.sum((vj - vi) * f.n, axis=0)
-                    nl = clamp_ropes(blk, l + relax * (rel + b) * f.k)
-                    p = f.n * (nl - l)
-                    dv = L.add_pair(topo, blk, dv, f.wi * p, -f.wj * p)
+                for blk, f, b, g, l in zip(topo.blocks, fr, bias, gs, lam):
+                    rel = R.rel(topo, blk, f, v)
+                    step = (rel + b) * f.k if g is None else row_solve(topo, blk, f, rel + b, l, g)
+                    nl = clamp_ropes(blk, l + relax * step)
+                    dv = R.apply(topo, blk, f, dv, nl - l)
                     new.append(nl)
                 return v + dv, tuple(new)
 
             v, lam = lax.fori_loop(0, self.iterations, iterate, (v, lam))
             if split:
-                return split_position_pass(sys, x + h * v, self.iterations, relax), v, lam
+                return split_position_pass(sys, x + h * v, self.iterations, slop, relax), v, lam
             return x + h * v, v, lam
 
         return substepped(substep, self.substeps, x, v, lam, dt)
@@ -141,7 +152,8 @@ class Jacobi(Solver):
         beta = jnp.asarray(self.beta, dtype)
         relax = None if self.relaxation is None else jnp.asarray(self.relaxation, dtype)
         split = self.stabilization == "split"
-        v_free, v, fr, bias, obs, pairs, lam, imp = contact_begin(sys, x, v, lam_ws, beta, h, split,
+        share = jnp.asarray(self.slop, dtype)
+        v_free, v, fr, bias, obs, pairs, lam, imp, slop = contact_begin(sys, x, v, lam_ws, beta, h, share if split else None,
                                                                   self.warm_start, found=found)
 
         def run(obs, pairs):
@@ -151,5 +163,5 @@ class Jacobi(Solver):
         rods_pass = None
         if split and fr:
             rod_relax = jnp.asarray(1.0 / max_degree(topo), dtype) if relax is None else relax
-            rods_pass = lambda x: split_position_pass(sys, x, self.iterations, rod_relax)  # noqa: E731
+            rods_pass = lambda x: split_position_pass(sys, x, self.iterations, slop, rod_relax)  # noqa: E731
         return contact_end(sys, x, v, v_free, obs, pairs, imp, h, rods_pass=rods_pass), v, (lam, imp)

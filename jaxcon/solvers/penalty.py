@@ -10,6 +10,7 @@ import numpy as np
 from jax import lax
 
 from jaxcon.core import layout as L
+from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
@@ -98,12 +99,24 @@ class Penalty(Solver):
         the true limit. Concrete values only (NumPy). `rollout` and `step` warn when dt / substeps is above it."""
         t = model.topology
         w = np.asarray(model.inv_mass, np.float64)
-        deg = np.bincount(np.concatenate([t.i, t.j]), minlength=t.n)
+        ends = [t.i, t.j] + [info.particles.reshape(-1) for info in t.sets]
+        deg = np.bincount(np.concatenate(ends), minlength=t.n)
         if model.contact is not None:
             return self._contact_stability_limit(model, w, deg)
-        bound = float(np.max(w[t.i] * deg[t.i] + w[t.j] * deg[t.j]))
-        omega = np.sqrt(float(self.stiffness) * bound)
+        k = float(self.stiffness)
+        bound = k * float(np.max(w[t.i] * deg[t.i] + w[t.j] * deg[t.j], initial=0.0))
+        bound = max([bound] + [self._set_bound(c, info, w, deg) for c, info in zip(model.constraints, t.sets)])
+        omega = np.sqrt(bound)
         return float(2 / omega) if omega > 0 else float("inf")
+
+    def _set_bound(self, con, info, w, deg) -> float:
+        """A constraint set's rows in `stability_limit`'s bound, estimated as for unit gradients (|dC/dx_p| = 1,
+        true of distances; an angle's is 1 / length, an area's a length): stiffness (1 / alpha for compliant
+        rows) times sum_p w_p deg_p over the row's particles."""
+        a = np.broadcast_to(np.asarray(concrete(con.compliance) if concrete(con.compliance) is not None else 0.0,
+                                       np.float64), (info.m,))
+        k = np.where(a > 0, 1 / np.where(a > 0, a, 1), float(self.stiffness))
+        return float(np.max(k * np.sum(w[info.particles] * deg[info.particles], axis=1), initial=0.0))
 
     def _contact_stability_limit(self, model, w, deg):
         """`stability_limit` of a model with contacts: each particle's degree also counts the contacts it can
@@ -159,6 +172,9 @@ class Penalty(Solver):
         def substep(x, v, _, h):
             geo = []
             for blk, rest in zip(topo.blocks, sys.rest):
+                if blk.generic is not None:
+                    geo.append((jnp.zeros((), bool), None, None))
+                    continue
                 xi, xj = L.gather_pair(topo, blk, x)
                 wi, wj = L.gather_pair(topo, blk, sys.w)
                 C = L.safe_norm(xj - xi, axis=0)[0] - rest
@@ -169,12 +185,19 @@ class Penalty(Solver):
             x = jnp.where(blown, lax.stop_gradient(x), x)
             v = jnp.where(blown, lax.stop_gradient(v), v)
             for b, (blk, rest) in enumerate(zip(topo.blocks, sys.rest)):
+                if blk.generic is not None:
+                    geo[b] = _set_springs(sys, blk, x, v, k, c)
+                    continue
                 xi, xj = L.gather_pair(topo, blk, x)
                 vi, vj = L.gather_pair(topo, blk, v)
                 dist, n = L.safe_norm(xj - xi, axis=0)
                 geo[b] = (n, geo[b][1], geo[b][2], dist - rest, jnp.sum((vj - vi) * n, axis=0), rest)
             imp = []
-            for blk, (n, wi, wj, C, u, rest) in zip(topo.blocks, geo):
+            for blk, g in zip(topo.blocks, geo):
+                if blk.generic is not None:
+                    imp.append(g[1] * h)
+                    continue
+                n, wi, wj, C, u, rest = g
                 T = k * C + c * u
                 cap = STRETCH_CLIP * k * rest
                 T = jnp.where(rest > 0, jnp.clip(T, -cap, cap), T)
@@ -183,7 +206,11 @@ class Penalty(Solver):
                     T = taut if blk.all_rope else jnp.where(blk.rope.array, taut, T)
                 imp.append(T * h)
             v = sys.apply_gravity(v, h)
-            for blk, (n, wi, wj, *_), p in zip(topo.blocks, geo, imp):
+            for blk, g, p in zip(topo.blocks, geo, imp):
+                if blk.generic is not None:
+                    v = R.apply(topo, blk, g[0], v, p)
+                    continue
+                n, wi, wj = g[:3]
                 q = n * p
                 v = L.add_pair(topo, blk, v, wi * q, -wj * q)
             return x + h * v, v, tuple(imp)
@@ -203,6 +230,18 @@ class Penalty(Solver):
             return x1 + h * dv, v1 + dv, (imp_b, imp_c)
 
         return substepped(with_contacts, self.substeps, x, v, lam, dt)
+
+
+def _set_springs(sys, blk, x, v, k, c):
+    """A constraint set's rows as springs: (their frame, tension T): T = k C_lib + c rel for hard rows (the
+    solver's stiffness and damping), C_lib / alpha for compliant rows (their own spring: potential energy
+    C^2 / (2 alpha)); a unilateral row only while violated, and then only pushing C up."""
+    f = R.set_frame(sys.topology, blk, *sys.set_of(blk), x, sys.w)
+    soft = f.alpha > 0
+    T = jnp.where(soft, f.C / jnp.where(soft, f.alpha, 1), k * f.C) + c * R.rel(sys.topology, blk, f, v)
+    if blk.all_rope:
+        T = jnp.where(f.C > 0, jnp.maximum(T, 0), 0)
+    return f, T * (f.k > 0).astype(T.dtype)
 
 
 #: The least restitution a contact with no tensile force can have at critical damping, exp(-2) (below it Penalty

@@ -8,10 +8,11 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxcon.core import layout as L
+from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
-from jaxcon.solvers.common import clamp_ropes, frames
+from jaxcon.solvers.common import clamp_ropes, frames, shake_sweep
 
 # Sweep loops of at most this many iterations are unrolled (lets XLA fuse the small per-sweep ops; a few
 # times faster on small systems, same result).
@@ -59,65 +60,62 @@ class RATTLE(Solver):
         tol = jnp.asarray(self.tolerance, dtype)
         tiny = jnp.finfo(dtype).tiny
         fr0 = frames(sys, x)
-        rest2 = tuple(r * r for r in sys.rest)
         zero = tuple(jnp.zeros_like(f.C) for f in fr0)
 
+        v, spring0 = _spring_kick(sys, fr0, v, h / 2)
         v = sys.apply_gravity(v, h / 2)
         x = x + h * v
 
-        def shake_colour(xv, blk, rows):
-            x, v = xv
-            f, r2, mu = rows
-            xi, xj = L.gather_pair(topo, blk, x)
-            d = xj - xi
-            dist, _ = L.safe_length(d)
-            res = jnp.sum(d * d, axis=0) - r2
-            # SHAKE moves along the start-of-step direction n0 by res / (2 (w_i + w_j) d . n0). A rod of rest
-            # length 0 (or one that turned far within the step) has d . n0 near 0 and would be flung (1e44 m):
-            # d . n0 is taken as at least |d| / 2, which bounds the move by |d| and leaves other rods unchanged.
-            along = jnp.sum(d * f.n, axis=0)
-            live = (f.k > 0) & (along > 0)
-            rhs = jnp.where(live, res / (2 * jnp.where(live, jnp.maximum(along, 0.5 * dist), 1)), 0)
-            if getattr(blk, "star", False):        # a star's rows share the hub: solved together, every row updated
-                upd = L.block_solve(topo, blk, f, rhs)
-            else:
-                upd = jnp.where(live & (jnp.abs(res) > tol * 2 * r2), rhs * f.k, 0)
-            new = clamp_ropes(blk, mu + upd)
-            p = f.n * (new - mu)
-            pi, pj = f.wi * p, -f.wj * p
-            return (L.add_pair(topo, blk, x, pi, pj), L.add_pair(topo, blk, v, pi / h, pj / h)), new
-
-        def shake(_, carry):
-            x, v, mu = carry
-            mu = list(mu)
-            for c, (blk, f, r2) in enumerate(zip(topo.blocks, fr0, rest2)):
-                (x, v), mu[c] = L.each_colour(blk, shake_colour, (x, v), (f, r2, mu[c]))
-            return x, v, tuple(mu)
+        shake = shake_sweep(sys, fr0, h, tol)
 
         x, v, mu = lax.fori_loop(0, self.iterations, shake, (x, v, zero), unroll=self.iterations <= _UNROLL)
 
-        v = sys.apply_gravity(v, h / 2)
         fr1 = frames(sys, x)
+        v, spring1 = _spring_kick(sys, fr1, v, h / 2)
+        v = sys.apply_gravity(v, h / 2)
 
         def project_colour(v, blk, rows):
-            f, r, lam = rows
-            vi, vj = L.gather_pair(topo, blk, v)
-            rel = jnp.sum((vj - vi) * f.n, axis=0)
+            f, r, mu, lam = rows
+            rel = R.rel(topo, blk, f, v)
+            if getattr(blk, "generic", None) is not None:      # a set's hard rows: J(x) v = 0; compliant rows are springs
+                live = f.alpha == 0
+                if blk.has_rope:    # a unilateral row constrains the velocity only where the position stage held it
+                    held = (mu > 0) | (f.C >= 0)
+                    live = live & (held if blk.all_rope else (held | ~blk.rope.array))
+                step = jnp.where(live, rel * f.k, 0)
+                new = clamp_ropes(blk, lam + step)
+                return R.apply(topo, blk, f, v, new - lam), new
             active = jnp.abs(rel) * h > tol * r
             if blk.has_rope:  # a rope that is slack after the drift does not constrain the velocity
                 taut = f.C > -tol * jnp.maximum(r, tiny)
                 active = active & (taut if blk.all_rope else (taut | ~blk.rope.array))
             step = L.block_solve(topo, blk, f, rel) if getattr(blk, "star", False) else jnp.where(active, rel * f.k, 0)
             new = clamp_ropes(blk, lam + step)
-            p = f.n * (new - lam)
-            return L.add_pair(topo, blk, v, f.wi * p, -f.wj * p), new
+            return R.apply(topo, blk, f, v, new - lam), new
 
         def project(_, carry):
             v, lam = carry
             lam = list(lam)
             for c, (blk, f, r) in enumerate(zip(topo.blocks, fr1, sys.rest)):
-                v, lam[c] = L.each_colour(blk, project_colour, v, (f, r, lam[c]))
+                v, lam[c] = L.each_colour(blk, project_colour, v, (f, r, mu[c], lam[c]))
             return v, tuple(lam)
 
         v, lam2 = lax.fori_loop(0, self.iterations, project, (v, zero), unroll=self.iterations <= _UNROLL)
-        return x, v, tuple(map(operator.add, (m / h for m in mu), lam2))
+        lam = tuple(map(operator.add, (m / h for m in mu), lam2))
+        return x, v, tuple(l + s0 + s1 for l, s0, s1 in zip(lam, spring0, spring1))
+
+
+def _spring_kick(sys, fr, v, dt):
+    """A half kick of the constraint sets' compliant rows, which RATTLE integrates as the springs they are: the
+    force -(C / alpha) dC/dx (potential energy C^2 / (2 alpha)) held for `dt`. Returns (v, per-block impulses:
+    C_lib / alpha dt for compliant rows, 0 elsewhere)."""
+    out = []
+    for blk, f in zip(sys.topology.blocks, fr):
+        if blk.generic is None:
+            out.append(0)
+            continue
+        soft = (f.alpha > 0) & (f.k > 0)
+        imp = jnp.where(soft, f.C / jnp.where(soft, f.alpha, 1), 0) * dt
+        v = R.apply(sys.topology, blk, f, v, imp)
+        out.append(imp)
+    return v, tuple(out)

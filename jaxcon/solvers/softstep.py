@@ -9,12 +9,13 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxcon.core import layout as L
+from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact, contact_soft
-from jaxcon.solvers.common import apply_impulses, clamp_ropes, frames
+from jaxcon.solvers.common import apply_impulses, clamp_ropes, frames, gamma, row_solve, warm_rows
 
 
 def soft_coefficients(hertz, damping_ratio, h):
@@ -29,26 +30,31 @@ def soft_coefficients(hertz, damping_ratio, h):
     return omega / a1, a2 * a3, a3
 
 
-def _sweep(topo, v, lam, fr, bias, mass_scale, impulse_scale, inv_h):
-    """One Gauss-Seidel sweep over the rod and rope colours with soft (or, mass_scale 1 and impulse_scale 0,
-    rigid) rows; a slack rope is speculative and rigid. Returns (v, lam)."""
+def _sweep(topo, v, lam, fr, bias, mass_scale, impulse_scale, inv_h, spring=True):
+    """One Gauss-Seidel sweep over the constraint colours with soft (or, mass_scale 1 and impulse_scale 0,
+    rigid) rows; a slack rope (or unilateral row) is speculative and rigid. A constraint set's compliant rows
+    are their own springs instead (`common.row_solve`, bias C / h; warm-started by `common.warm_rows`;
+    untouched by the relax sweeps), so a compliance means the same potential energy as in every other solver.
+    Returns (v, lam)."""
     def colour(v, blk, rows):
-        f, lam = rows
-        vi, vj = L.gather_pair(topo, blk, v)
-        rel = jnp.sum((vj - vi) * f.n, axis=0)
+        f, g, lam = rows
+        rel = R.rel(topo, blk, f, v)
         ms, isc, b = mass_scale, impulse_scale, bias(f)
         if blk.has_rope:  # slack rope: speculative, rigid
             slack = f.C < 0 if blk.all_rope else (f.C < 0) & blk.rope.array
             b = jnp.where(slack, f.C * inv_h, b)
             ms = jnp.where(slack, 1, ms)
             isc = jnp.where(slack, 0, isc)
-        new = clamp_ropes(blk, lam + ms * L.block_solve(topo, blk, f, rel + b) - isc * lam)
-        p = f.n * (new - lam)
-        return L.add_pair(topo, blk, v, f.wi * p, -f.wj * p), new
+        step = ms * L.block_solve(topo, blk, f, rel + b) - isc * lam
+        if g is not None:       # the relax sweeps leave compliant rows alone: their spring impulse is the solve's
+            own = row_solve(topo, blk, f, rel + f.C * inv_h, lam, g) if spring else jnp.zeros_like(step)
+            step = jnp.where(f.alpha > 0, own, step)
+        new = clamp_ropes(blk, lam + step)
+        return R.apply(topo, blk, f, v, new - lam), new
 
     lam = list(lam)
     for c, (blk, f) in enumerate(zip(topo.blocks, fr)):
-        v, lam[c] = L.each_colour(blk, colour, v, (f, lam[c]))
+        v, lam[c] = L.each_colour(blk, colour, v, (f, gamma(f, 1 / inv_h), lam[c]))
     return v, tuple(lam)
 
 
@@ -57,7 +63,8 @@ class SoftStep(Solver):
     """Soft step (Box2D v3): per substep of length h = dt / substeps,
 
       1. integrate velocities: v += h g;
-      2. warm start: apply the previous substep's impulses;
+      2. warm start: apply the previous substep's impulses (a constraint set's compliant rows': a share,
+         `common.warm_rows`);
       3. solve, one sweep over the colours with soft constraints:
            dlam = mass_scale (n . (v_j - v_i) + bias_rate C) / (w_i + w_j) - impulse_scale lam
          (coefficients from `soft_coefficients(hertz, damping_ratio, h)`);
@@ -129,7 +136,8 @@ class SoftStep(Solver):
             bias_rate, mass_scale, impulse_scale = soft_coefficients(hertz, zeta, h)
             v = sys.apply_gravity(v, h)
             fr = frames(sys, x)
-            lam = tuple(clamp_ropes(blk, l) * (f.k > 0).astype(l.dtype) for blk, f, l in zip(topo.blocks, fr, lam))
+            lam = tuple(clamp_ropes(blk, warm_rows(f, l, h)) * (f.k > 0).astype(l.dtype)
+                        for blk, f, l in zip(topo.blocks, fr, lam))
             v = apply_impulses(sys, v, fr, lam)
             inv_h = 1 / h
             v, lam = sweep(v, lam, fr, lambda f: bias_rate * f.C, mass_scale, impulse_scale, inv_h)
@@ -138,7 +146,7 @@ class SoftStep(Solver):
                 fr = frames(sys, x)
                 v, lam = lax.fori_loop(
                     0, self.relax_iterations,
-                    lambda _, c: sweep(*c, fr, lambda f: jnp.zeros_like(f.C), 1.0, 0.0, inv_h), (v, lam))
+                    lambda _, c: sweep(*c, fr, lambda f: jnp.zeros_like(f.C), 1.0, 0.0, inv_h, False), (v, lam))
             return x, v, lam
 
         return substepped(substep, self.substeps, x, v, lam, dt)
@@ -158,7 +166,8 @@ class SoftStep(Solver):
         v0, v = v, sys.apply_gravity(v, h)
         v_free = v
         fr = frames(sys, x)
-        lam = tuple(clamp_ropes(blk, l) * (f.k > 0).astype(l.dtype) for blk, f, l in zip(topo.blocks, fr, lam))
+        lam = tuple(clamp_ropes(blk, warm_rows(f, l, h)) * (f.k > 0).astype(l.dtype)
+                    for blk, f, l in zip(topo.blocks, fr, lam))
         v = apply_impulses(sys, v, fr, lam)
         obs, pairs = contact.rows(cs, w, x, v0, v_free, jnp.zeros((), dtype), h)
         v, imp = contact.warm_start(cs, w, v, obs, pairs, imp)
@@ -173,7 +182,7 @@ class SoftStep(Solver):
 
             def relax(_, carry):
                 v, lam, imp = carry
-                v, lam = _sweep(topo, v, lam, fr, lambda f: jnp.zeros_like(f.C), 1.0, 0.0, inv_h)
+                v, lam = _sweep(topo, v, lam, fr, lambda f: jnp.zeros_like(f.C), 1.0, 0.0, inv_h, False)
                 v, imp = contact.sweep(cs, w, v, obs, pairs, imp)
                 return v, lam, imp
 

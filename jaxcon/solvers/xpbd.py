@@ -72,7 +72,7 @@ class XPBD(Solver):
         dtype = x.dtype
         h = dt / self.substeps
         alpha = jnp.asarray(self.compliance, dtype) / (h * h)
-        sweep = position_sweep(sys, sys.rest, alpha)
+        sweep = position_sweep(sys, sys.rest, alpha, set_alpha=lambda a: a / (h * h))
 
         def predict(x, v):
             return x + h * sys.apply_gravity(v, h)
@@ -98,7 +98,8 @@ class XPBD(Solver):
         topo, cs = sys.topology, sys.contact
         dtype = x.dtype
         h = dt / self.substeps
-        sweep_colours = position_sweep(sys, sys.rest, jnp.asarray(self.compliance, dtype) / (h * h))
+        sweep_colours = position_sweep(sys, sys.rest, jnp.asarray(self.compliance, dtype) / (h * h),
+                                       set_alpha=lambda a: a / (h * h))
         zero_b = tuple(jnp.zeros(b.shape, dtype) for b in topo.blocks)
         zero_c = contact.zero_impulses(topo, cs.ct, dtype)
 

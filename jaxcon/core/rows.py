@@ -1,0 +1,139 @@
+"""Rows: what a solver needs of one block of constraints, whatever kind made them.
+
+A *row* is one scalar constraint: its value C, its Jacobian J = dC/dx over its particles, their inverse masses
+and its effective mass k = 1 / (J M^-1 J^T). Rods and ropes (pair blocks, `layout`) keep their tuned frame
+(`solvers.common.Frame`: the unit normal n, wi, wj); a `jc.Constraint` set's block gets a `SetFrame`, with J
+from `jax.grad` of the user's C. Solvers go through `rel` and `apply` and never look at which kind a block is:
+
+  rel(v)        the rate at which the row's C_lib grows at velocities v: n . (v_j - v_i) for a rod, -J . v
+  apply(v, dl)  v + M^-1 J^T dl: +w_i n dl at i and -w_j n dl at j for a rod, +w_p J_p dl for a set's row
+
+Signs: the solvers use the rods' tension convention, C_lib = |x_j - x_i| - L (> 0 stretched) and lam > 0
+pulling. A set's C_lib is -C of the user's function, and its lam the user's (the force is J^T lam): for a rod,
+whose user C would be L - |x_j - x_i|, the two agree exactly (docs/constraints.md).
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+
+from jaxcon.core import layout as L
+
+Array = Any
+
+
+class SetFrame(NamedTuple):
+    """A `jc.Constraint` set's rows at some positions, row axes last (`layout.SetRow`): J [dim, k, *shape]
+    (dC/dx of the user's C, dim first like a rod's n), w [k, *shape], C (C_lib = -C_user) [*shape],
+    s = sum_p w_p |J_p|^2, k = 1 / s (0 where a row is padding, has no mobility or no defined gradient), alpha:
+    the compliance [*shape]."""
+
+    J: Array
+    w: Array
+    C: Array
+    s: Array
+    k: Array
+    alpha: Array
+
+
+class SetSystem(NamedTuple):
+    """A set's leaves in its block's table layout, row axes last: params {name: [..., C, W]}, compliance [C, W].
+    The function and kind are static, on the model's `Constraint`."""
+
+    params: dict
+    compliance: Array
+
+
+def set_system(con, block, first: int, dtype) -> SetSystem:
+    """`con`'s parameters and compliance in the table layout of its `block` (the set's constraints start at
+    user constraint index `first`)."""
+    local = np.where(block.real.array, block.src.array - first, con.m).astype(np.int32)
+
+    def table(a):
+        a = jnp.asarray(a)
+        a = a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a
+        return jnp.moveaxis(jnp.take(a, local, axis=0, mode="fill", fill_value=0), (0, 1), (-2, -1))
+
+    return SetSystem({k: table(v) for k, v in con.params.items()}, table(con.compliance))
+
+
+#: Where a row's C or J is not finite at its positions, they are evaluated again at positions moved by this
+#: fraction of the row's scale along a fixed pattern, so reverse mode through the (then masked) row sees finite
+#: derivatives (the "double where" on the inputs; e.g. |x1 - x0| - L at x1 = x0).
+_NUDGE = 1e-3
+
+
+def evaluate(fn, x, params):
+    """C and J = dC/dx of rows: x [*rows, k, dim], params {name: [*rows, ...]} -> (C [*rows], J [*rows, k, dim],
+    ok [*rows]). Rows whose C or J is not finite are evaluated at nudged positions (no gradient to x through
+    them) and reported not ok; their C and J are 0."""
+    lead = x.shape[:-2]
+    xf = x.reshape((-1,) + x.shape[-2:])
+    pf = jax.tree.map(lambda a: a.reshape((xf.shape[0],) + a.shape[len(lead):]), params)
+    vg = jax.vmap(jax.value_and_grad(fn))
+    C0, J0 = vg(lax.stop_gradient(xf), lax.stop_gradient(pf))
+    ok = jnp.isfinite(C0) & jnp.all(jnp.isfinite(J0), axis=(-1, -2))
+    k, dim = xf.shape[-2:]
+    pattern = jnp.asarray((np.arange(k * dim).reshape(k, dim) % 7 + 1) / 7.0, xf.dtype)
+    scale = 1 + jnp.max(jnp.abs(lax.stop_gradient(xf)), axis=(-1, -2), keepdims=True)
+    x_in = jnp.where(ok[:, None, None], xf, lax.stop_gradient(xf) + _NUDGE * scale * pattern)
+    C, J = vg(x_in, pf)
+    C = jnp.where(ok, C, 0)
+    J = jnp.where(ok[:, None, None], J, 0)
+    return C.reshape(lead), J.reshape(lead + J.shape[1:]), ok.reshape(lead)
+
+
+def _rows_first(x, params, nrow):
+    """Gathered positions [dim, k, *rows] and params [..., *rows] -> ([*rows, k, dim], {[*rows, ...]})."""
+    xr = jnp.moveaxis(x, (0, 1), (-1, -2))
+    r = tuple(range(nrow))
+    return xr, jax.tree.map(lambda a: jnp.moveaxis(a, tuple(range(a.ndim - nrow, a.ndim)), r), params)
+
+
+def set_frame(topo, block, con, ssys: SetSystem, x, w) -> SetFrame:
+    """A set's rows at positions x [dim, *view] (`w`: inverse masses [1, *view]), for its whole block or a
+    `SetRow` (then `ssys` holds that colour's rows)."""
+    real = block.real.array
+    xr, pr = _rows_first(L.gather_rows(topo, block, x), ssys.params, real.ndim)      # [*rows, k, dim]
+    wg = L.gather_rows(topo, block, w)[0]                                           # [k, *rows]
+    C, J, ok = evaluate(con.fn, xr, pr)
+    J = jnp.moveaxis(J, (-1, -2), (0, 1))                                          # [dim, k, *rows]
+    s = jnp.sum(wg * jnp.sum(J * J, axis=0), axis=0)
+    live = ok & real & (s > L.min_length2(x.dtype))
+    return SetFrame(J, wg, -C, s, jnp.where(live, L.safe_reciprocal(jnp.where(live, s, 1)), 0),
+                    ssys.compliance)
+
+
+def rel(topo, block, f, v):
+    """The rate of the rows' C_lib at velocities v [dim, *view] (module docstring)."""
+    if getattr(block, "generic", None) is not None:
+        return -jnp.sum(f.J * L.gather_rows(topo, block, v), axis=(0, 1))
+    vi, vj = L.gather_pair(topo, block, v)
+    return L.dot(block, vj - vi, f.n)
+
+
+def apply(topo, block, f, v, dlam):
+    """v + M^-1 J^T dlam for the rows' multiplier changes `dlam` (tension sign; module docstring)."""
+    if getattr(block, "generic", None) is not None:
+        return L.add_rows(topo, block, v, f.J * (f.w * dlam))
+    p = f.n * dlam
+    return L.add_pair(topo, block, v, f.wi * p, -f.wj * p)
+
+
+def value_at(topo, block, con, ssys: SetSystem, x):
+    """The rows' C_lib at positions x [dim, *view] (no gradient work; 0 where not finite)."""
+    xr, pr = _rows_first(L.gather_rows(topo, block, x), ssys.params, block.real.array.ndim)
+    lead = xr.shape[:-2]
+    xf = xr.reshape((-1,) + xr.shape[-2:])
+    pf = jax.tree.map(lambda a: a.reshape((xf.shape[0],) + a.shape[len(lead):]), pr)
+    C = jax.vmap(con.fn)(xf, pf).reshape(lead)
+    return -jnp.where(jnp.isfinite(C), C, 0)
+
+
+def compliant(f) -> Optional[Array]:
+    """The rows' compliance where some row may be compliant, else None (rods and ropes: None)."""
+    return getattr(f, "alpha", None)
