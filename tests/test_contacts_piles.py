@@ -3,11 +3,13 @@ bench's overlap measure. The incline (mu 0.5 slides at g (sin 30 - mu cos 30), m
 tests/test_contacts.py."""
 import jax
 import numpy as np
+import pytest
 
 import jaxcon as jc
 from jaxcon.bench.contacts import deepest_overlap
 
 
+@pytest.mark.optimised          # 240 steps of 256 discs: 12 s at the lowest effort, 6.5 s here
 def test_disc_box_of_256_comes_to_rest_with_little_overlap():
     """256 discs (R 0.5 m, mu 0.5, e 0) dropped into the box, PGS(10), dt 1/60, float32: at rest (max speed below
     0.05 m/s) after 4 s, the deepest overlap at every 15th step under 5% of R. With contact_slop=0 (the method
