@@ -8,7 +8,7 @@ The public API is what this module exports (see docs/api.md). The package is lai
                    (contacts as unilateral velocity constraints)
   identification/  fitting physical parameters to observed motion (`fit`)
   diagnostics.py   violation, penetration, energies, drift and `diagnose`
-  scenes.py        ready-made scenes (pendulums, chains, cloth; billiards, drape, falling chain)
+  scenes.py        ready-made scenes (pendulums, chains, cloth; billiards, drape, falling chain, disc box)
   bench/           the command line, benchmarks and their independent references (not library API)
 """
 from jaxcon import scenes as scenes

@@ -270,3 +270,38 @@ def falling_chain(n_links: int = 20, length: float = 1.0, mass: float = 0.5, *, 
     return build(x, jnp.asarray(mass).astype(dtype) / (n_links + 1), rods=pairs,
                  radius=0.25 * jnp.asarray(length).astype(dtype) / n_links, planes=[((0.0, 1.0), 0.0)],
                  friction=friction, restitution=restitution, dtype=dtype)
+
+
+def disc_box_layout(n: int, radius: float = 0.5, *, columns=None, drop: float = 1.0, spacing: float = 1.1):
+    """Where `disc_box` puts its discs: (positions [n, 2] as NumPy, box width W). Rows of `columns` discs
+    (default ceil(sqrt(n))) `2 spacing radius` apart, every other row shifted by half that, rows `sqrt(3)
+    spacing radius` apart, the lowest `drop` m above the floor y = 0; the box spans 0 <= x <= W with W the
+    width of `columns + 1/2` discs at that spacing plus a gap of `radius` at each side. Peers (Box2D, pymunk)
+    build the same box from it."""
+    _count("disc_box", "n", n, 1)
+    c = int(np.ceil(np.sqrt(n))) if columns is None else columns
+    _count("disc_box", "columns", c, 1)
+    r, s = float(radius), 2 * float(spacing) * float(radius)
+    k = np.arange(n)
+    row, col = k // c, k % c
+    x = 2 * r + (col + 0.5 * (row % 2)) * s
+    y = r + float(drop) + row * s * np.sqrt(3) / 2
+    width = 3 * r + (c - 0.5) * s + 2 * r
+    return np.stack([x, y], -1), width
+
+
+def disc_box(n: int = 1024, radius: float = 0.5, mass: float = 1.0, *, friction: float = 0.5,
+             restitution: float = 0.0, columns=None, drop: float = 1.0, collide="grid", max_neighbours=None,
+             dtype=None):
+    """A 2-D pile: n discs of `radius` m and `mass` kg in staggered rows (`disc_box_layout`) dropped from rest
+    into a box (a floor y = 0 and walls x = 0 and x = W), under gravity, `friction` and `restitution` on every
+    contact (issue 25's scene: R = 0.5 m, 1 kg, mu 0.5, e 0). `collide` and `max_neighbours` go to `jc.build`
+    ("grid": the neighbour grid at any size)."""
+    for name, v in (("radius", radius), ("mass", mass), ("drop", drop)):
+        _value("disc_box", name, v, (), positive=True)
+    x, width = disc_box_layout(n, radius, columns=columns, drop=drop)
+    dtype = _dtype("disc_box", dtype, radius, mass)
+    planes = [((0.0, 1.0), 0.0), ((1.0, 0.0), 0.0), ((-1.0, 0.0), -width)]
+    return build(jnp.asarray(x, dtype), jnp.asarray(mass).astype(dtype), radius=radius, collide=collide,
+                 max_neighbours=max_neighbours, planes=planes, friction=friction, restitution=restitution,
+                 dtype=dtype)

@@ -46,7 +46,7 @@ def test_bounce_heights_follow_e_squared():
     assert 3 < errors[0] / errors[1] < 5                                # first order: 4x smaller at dt / 4
 
 
-@pytest.mark.parametrize("mu, slides", [(0.3, True), (0.6, False)])
+@pytest.mark.parametrize("mu, slides", [(0.3, True), (0.5, True), (0.6, False)])   # tan 30 = 0.577
 def test_incline_slides_with_coulomb_acceleration_or_sticks(mu, slides):
     a = np.pi / 6
     n = np.array([-np.sin(a), np.cos(a)])

@@ -25,7 +25,8 @@ DESCRIPTION = """jaxcon: differentiable constrained particle dynamics in JAX.
   demo    each scene with a solver that suits it (violation and energy drift), plain PGS for comparison,
           and a rest-length identification with jc.fit
   bench   speed against error: median step times after compilation, compile time apart, the error reached,
-          batched throughput and gradient compile time; --speed-vs-error sweeps every solver"""
+          batched throughput and gradient compile time; --speed-vs-error sweeps every solver; --contacts runs
+          the disc box against pymunk and Box2D"""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -63,6 +64,10 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("--contact-grid", nargs="*", type=_positive_int, metavar="N",
                    help="instead: PGS(10)'s cost per step with all-pairs contacts against the neighbour grid, for "
                         "lattices of N discs (default 256 1024 2048)")
+    b.add_argument("--contacts", nargs="*", type=_positive_int, metavar="N",
+                   help="instead: issue 25's disc box (N discs dropped into a box, PGS(10) on the grid, float32) "
+                        "against pymunk and Box2D 2.3 when installed, in the same run: ms/step, compile time, "
+                        "max speed and overlap at 4 s and 8 s (default 64 256 1024; up to 16384)")
     b.add_argument("--out-dir", default="speed_vs_error", metavar="DIR",
                    help="output folder of --speed-vs-error (created if missing; default speed_vs_error)")
     return p
@@ -106,6 +111,10 @@ def main(argv=None) -> int:
     if args.cmd == "bench" and args.contact_grid is not None:
         from jaxcon.bench.contact_grid import main as contact_grid
         contact_grid(tuple(args.contact_grid) or (256, 1024, 2048))
+        return 0
+    if args.cmd == "bench" and args.contacts is not None:
+        from jaxcon.bench.contacts import main as contacts
+        contacts(tuple(args.contacts) or (64, 256, 1024))
         return 0
     if args.cmd == "bench" and args.batched is not None:
         from jaxcon.bench.suite import batched_only

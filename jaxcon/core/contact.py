@@ -44,11 +44,14 @@ DEFAULT_MAX_NEIGHBOURS = {2: 8, 3: 16}
 
 
 def grid_table_size(n: int) -> int:
-    """Buckets of the neighbour grid's spatial hash: 2^30 whatever n. No table is stored (a bucket is a range of
-    the particles sorted by bucket), so a large one costs nothing and makes two occupied cells sharing a bucket
-    rare (such a bucket is still handled: each entry's cell is checked, and its extra entries count towards
-    the overflow)."""
-    return 1 << 30
+    """Buckets of the neighbour grid's spatial hash: the power of two at or above 8 n (at least 64). Each step
+    counts the particles per bucket (a table of that size) and finds a bucket's range of the particles sorted by
+    bucket from the counts' running sum: one gather per looked-up cell, where a binary search over the sorted
+    particles (the table of 2^30 buckets this replaced) took 18 searches of log2(n) rounds each in 2-D, 11 of
+    the 17.5 ms of the 1024-disc box's step. Equal discs fill about one cell in two particles, so one bucket in
+    16 is occupied and two occupied cells seldom share one (such a bucket is still handled: each entry's cell is
+    checked, and its extra entries count towards the overflow)."""
+    return 1 << max(6, int(np.ceil(np.log2(8 * max(n, 1)))))
 
 
 def round_robin(n: int) -> list:

@@ -397,9 +397,10 @@ def grid_step(sys, x, v, h, solve):
 
 
 def contact_begin(sys, x, v, lam_ws, beta, h, split, warm: bool, factor=1.0, gradient: bool = True,
-                  found=None):
-    """Gravity, the rods' frames and biases (`split`: split impulses' slop share, or None), the contact rows, and
-    the warm start of rods and contacts (scaled by `factor`; no gradient through it unless `gradient`). A grid model
+                  found=None, contact_slop=0.0):
+    """Gravity, the rods' frames and biases (`split`: split impulses' slop share, or None), the contact rows (which
+    keep `contact_slop` of overlap, `contact.rows`), and the warm start of rods and contacts (scaled by `factor`;
+    no gradient through it unless `gradient`). A grid model
     passes its candidate pairs `found` = (partners, overflow) (`grid_step`).
     Returns (v_free, v, fr, bias, obs, pairs, lam, imp, slop): v_free is the velocity after gravity, before any
     impulse (what the time-of-impact correction compares with); slop: split impulses' (`split_slop`) or None."""
@@ -411,7 +412,7 @@ def contact_begin(sys, x, v, lam_ws, beta, h, split, warm: bool, factor=1.0, gra
     slop = None if split is None else split_slop(sys, fr, v, h, beta, split)
     bias = velocity_bias(topo, fr, beta, h, slop)
     partners, overflow = (None, None) if found is None else found
-    obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h, partners)
+    obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h, partners, contact_slop)
     if not warm:
         lam, imp = tuple(jnp.zeros_like(f.C) for f in fr), contact.zero_impulses(topo, cs.ct, x.dtype)
     else:
@@ -452,14 +453,14 @@ def restitution_phases(sys, v_free, obs, pairs, iterations: int, carry, body):
     return jax.tree.map(mix, compressed, bounced)
 
 
-def contact_end(sys, x, v, v_free, obs, pairs, imp, h, passes=1, rods_pass=None):
+def contact_end(sys, x, v, v_free, obs, pairs, imp, h, passes=1, rods_pass=None, contact_slop=0.0):
     """New positions: x + h v with the time-of-impact correction (a particle whose velocity changed at tau within
     the step moved at its old velocity until then: x' = x + tau v_free + (h - tau) v'), then `rods_pass` (split
     impulses' position pass of the rods, x -> x, or None), then the position safety pass of the contacts
-    (`passes`: see contact.project_overlaps)."""
+    (`passes`, `contact_slop`: see contact.project_overlaps)."""
     cs = sys.contact
     dx = -contact.impact_times(cs, obs, pairs, imp, x.shape) * (v - v_free)
     x = x + h * v + dx
     if rods_pass is not None:
         x = rods_pass(x)
-    return contact.project_overlaps(cs, sys.w, x, passes, pairs)
+    return contact.project_overlaps(cs, sys.w, x, passes, pairs, contact_slop)

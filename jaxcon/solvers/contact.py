@@ -120,7 +120,9 @@ class Rows(NamedTuple):
     winv, time of impact `toi` (0 unless an impact happens within the step), gap, and `target_c`: the target
     without restitution (the compression phase; None for solvers that do not split the solve). Grid pair rows
     also carry their particles i, j [n, K] (internal indices, j = -1 for an empty slot); None otherwise. `near`:
-    touching or within rounding of it (an impact of such a contact is one of a touching contact, `_gap`)."""
+    touching or within rounding of it (an impact of such a contact is one of a touching contact, `_gap`).
+    `warm`: the rows the warm start applies last step's impulse to (touching, an impact, or a pair within the
+    solver's slop of touching)."""
 
     n: Array
     target: Array
@@ -132,6 +134,29 @@ class Rows(NamedTuple):
     i: Array = None
     j: Array = None
     near: Array = None
+    warm: Array = None
+
+
+def _dot(a, b):
+    """Sum of a * b over the leading (dim) axis, written out component by component (`layout.dot0`). On XLA's
+    CPU backend `jnp.sum(a * b, 0)` of gathered operands ([dim, n, M] from x[:, j]) becomes a reduction kernel
+    that gathers again for every element: the grid search's distance test of the 1024-disc box took 6.5 ms
+    that way and 0.26 ms written out."""
+    return L.dot0(a, b)
+
+
+def _length(d):
+    """`layout.safe_length` with `_dot`: (length, 1 / length) along the leading axis, both 0 at zero length."""
+    d2 = _dot(d, d)
+    ok = d2 > L.min_length2(d.dtype)
+    inv = jnp.where(ok, lax.rsqrt(jnp.where(ok, d2, 1)), 0)
+    return d2 * inv, inv
+
+
+def _norm(d):
+    """`layout.safe_norm` along the leading axis with `_dot`: (length, unit direction, 0 at zero length)."""
+    dist, inv = _length(d)
+    return dist, d * inv
 
 
 def direction(d):
@@ -140,7 +165,7 @@ def direction(d):
     sphere's centre, or on another particle) the direction is +e_last, the last axis (y in 2-D, z in 3-D: up
     for the default gravity), so that the overlap is still pushed out: the second body upwards. Its derivative
     there is 0."""
-    dist, n = L.safe_norm(d, axis=0)
+    dist, n = _norm(d)
     up = jnp.zeros((d.shape[0],) + (1,) * (d.ndim - 1), d.dtype).at[-1].set(1)
     return dist, jnp.where(dist > 0, n, up)
 
@@ -155,7 +180,7 @@ def overlap_normal(d0, d, R):
     dist0, n0 = direction(d0)
     dist, n = direction(d)
     deep = dist0 - R < -_tolerance(_magnitude(d0) + R)
-    return jnp.where(deep, n0, n), jnp.where(deep, jnp.sum(n0 * d, 0), dist) - R
+    return jnp.where(deep, n0, n), jnp.where(deep, _dot(n0, d), dist) - R
 
 
 # ---- layout --------------------------------------------------------------------------------------------------
@@ -243,6 +268,12 @@ GRID_SCAN = 2
 #: costs K small steps over n particles, against n - 1 rounds for all pairs.
 GRID_OVERLAP_PASSES = 32
 
+#: A grid model's position passes stop after one that moved no particle by more than this fraction of the slop
+#: times the smallest radius (`project_overlaps`). Measured on the 1024-disc box (docs/contacts.md): 0.1 with
+#: the push-out beyond two slops (`PUSH_SLOPS`) rests by 5 s at 12 ms per step; 0.1 with the push-out beyond one
+#: slop did not rest in 8 s (1.1 m/s); 0.001 rested at 28 ms per step (most steps ran all 32 passes).
+GRID_PASS_STOP = 0.1
+
 _HASH = np.array([73856093, 19349663, 83492791], np.uint32)
 
 
@@ -274,7 +305,7 @@ def _spread(vf):
     """max |v - mean(v)| of velocities vf [dim, n]: |v_j - v_i| <= 2 spread (relative to the mean velocity, a
     pile falling as one keeps small cells)."""
     d = vf - jnp.mean(vf, axis=1, keepdims=True)
-    return jnp.sqrt(jnp.max(jnp.sum(d * d, 0)))
+    return jnp.sqrt(jnp.max(_dot(d, d)))
 
 
 def grid_search(cs: ContactSystem, x, v, h):
@@ -289,8 +320,8 @@ def grid_search(cs: ContactSystem, x, v, h):
 
     def close(jc):              # within the candidate distance (1 + GRID_SKIN)(r_i + r_j) + h |v_j - v_i|
         d, dv = xf[:, jc] - xf[:, :, None], vf[:, jc] - vf[:, :, None]
-        cut = (1 + GRID_SKIN) * (r[:, None] + r[jc]) + h * jnp.sqrt(jnp.sum(dv * dv, 0))
-        return jnp.sqrt(jnp.sum(d * d, 0)) < cut
+        cut = (1 + GRID_SKIN) * (r[:, None] + r[jc]) + h * jnp.sqrt(_dot(dv, dv))
+        return jnp.sqrt(_dot(d, d)) < cut
 
     return _select(cs, scan, close), scan
 
@@ -307,13 +338,14 @@ def _scan(ct: ContactTopology, xf, reach):
     c = jnp.clip(jnp.floor(xf / cell), -big, big).astype(jnp.int32)
     key = _cell_hash(c, table)
     order = jnp.argsort(key)
-    skey = key[order]
+    count = jnp.zeros((table,), jnp.int32).at[key].add(1)
+    start = jnp.cumsum(count) - count                 # each bucket's first position in the sorted order
     cands, missed = [], jnp.zeros((n,), jnp.int32)
     for off in itertools.product((-1, 0, 1), repeat=dim):
         qc = c + jnp.asarray(off, jnp.int32)[:, None]
         qk = _cell_hash(qc, table)
-        lo = jnp.searchsorted(skey, qk, side="left")
-        hi = jnp.searchsorted(skey, qk, side="right")
+        lo = start[qk]
+        hi = lo + count[qk]
         idx = lo[:, None] + jnp.arange(scan)[None]                   # [n, scan] positions in the sorted order
         j = order[jnp.minimum(idx, n - 1)]
         ok = (idx < hi[:, None]) & jnp.all(c[:, j] == qc[:, :, None], axis=0)
@@ -356,8 +388,8 @@ def path_search(cs: ContactSystem, x, x_end, h, scan):
     def close(jc):
         d0 = xf[:, jc] - xf[:, :, None]
         e = (xe[:, jc] - xe[:, :, None]) - d0
-        s = jnp.clip(-jnp.sum(d0 * e, 0) * L.safe_reciprocal(jnp.sum(e * e, 0)), 0, 1)
-        closest = jnp.sqrt(jnp.sum((d0 + s * e) ** 2, 0))
+        s = jnp.clip(-_dot(d0, e) * L.safe_reciprocal(_dot(e, e)), 0, 1)
+        closest = jnp.sqrt(_dot(d0 + s * e, d0 + s * e))
         R = r[:, None] + r[jc]
         return closest < R - _tolerance(_magnitude(xf[:, jc]) + _magnitude(xf)[:, None] + R)
 
@@ -402,7 +434,24 @@ ROUNDING = 64
 #: reached z = 58 m after 2 s with PGS(10, substeps=4)).
 PUSH_OUT_SPEED = 3.0
 
-def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h):
+#: PGS's default contact slop (`PGS.contact_slop`), a fraction of the contact distance (r_i + r_j for a pair, r
+#: for an obstacle): Box2D's linear slop (b2_linearSlop, 5 mm for bodies of about a metre). Overlaps up to the
+#: slop are left to the contact: the Baumgarte term pushes out only the overlap beyond `PUSH_SLOPS` of it, the
+#: position safety pass projects onto it (not onto C = 0), and a pair whose gap is within it either way is
+#: warm-started. Without
+#: it a pile never rests (docs/contacts.md, piles at rest): the position pass left resting contacts at C = 0,
+#: within rounding of touching, so that the next step took 40% of the disc box's pushing pairs as separated and
+#: solved them cold (no warm start, hence no friction either), while the Baumgarte term pushed every overlap
+#: out at velocity level that the position pass removed as well.
+CONTACT_SLOP = 0.005
+
+#: The Baumgarte term of a touching contact pushes out only the overlap beyond PUSH_SLOPS slops, while the position
+#: pass projects onto one slop: what the position pass leaves within its stopping tolerance (`GRID_PASS_STOP`) is
+#: not turned into velocity (on the 1024-disc box, the push-out beyond one slop kept the pile moving at 1.1 m/s).
+PUSH_SLOPS = 2.0
+
+
+def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h, slop=0.0):
     """Target velocity of contacts with gap C (`_gap`: > 0 separated, <= 0 touching), normal velocity vn0 at
     the start of the step and vn1 after the external forces, and an impact at `toi` where `impact` (module
     docstring; a contact within rounding of touching, C = 0, may be an impact at toi ~ 0).
@@ -413,13 +462,14 @@ def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h):
     continuous where the impact moves from one step to the next (at toi = h and toi = 0 both sides give the
     same state), and gives the time-of-impact dependence of u its right derivative (du/dC = a / |vn1|).
     A separated contact that is not an impact gets the speculative target -C_spec / h, C_spec its gap along
-    the row's normal. A touching one pushes its overlap out at -beta C / h, at most `PUSH_OUT_SPEED`.
+    the row's normal. A touching one pushes its overlap beyond `slop` (m) out at -beta (C + slop) / h, at most
+    `PUSH_OUT_SPEED`.
     Returns (target, target without restitution)."""
     dv = vn1 - vn0
     u = -(vn0 + dv * toi / h)
     bounce = jnp.where(u > cs.threshold, cs.restitution * u, 0)
     rest = dv * (h - toi) / h
-    push = jnp.minimum(-beta * C / h, PUSH_OUT_SPEED)
+    push = jnp.minimum(-beta * jnp.minimum(C + slop, 0) / h, PUSH_OUT_SPEED)
 
     def target(after):
         return jnp.where(impact, after, jnp.where(C > 0, -C_spec / h, jnp.maximum(after, push)))
@@ -461,17 +511,17 @@ def _swept(d, u, R, h, tol):
     dist, n0 = direction(d)
     C = dist - R
     Ci, Ri = _gap(C, tol), R - tol
-    uu = jnp.sum(u * u, 0)
-    du = jnp.sum(d * u, 0)
+    uu = _dot(u, u)
+    du = _dot(d, u)
     disc = du * du - uu * (Ci * (dist + Ri))
     hit = (Ci > 0) & (du < 0) & (disc > 0)
     root = jnp.sqrt(jnp.where(hit, disc, 1))
     t = Ci * (dist + Ri) / jnp.where(hit, root - du, 1)
     hit = hit & (t < h)
     toi = jnp.where(hit, t, 0)
-    _, n_hit = L.safe_norm(d + toi * u, axis=0)
+    _, n_hit = _norm(d + toi * u)
     n = jnp.where(hit, n_hit, n0)
-    return n, C, jnp.sum(n * d, 0) - R, hit, hit, toi
+    return n, C, _dot(n, d) - R, hit, hit, toi
 
 
 def _magnitude(a):
@@ -530,10 +580,11 @@ def _first_impacts(ct, obs, pairs, n_particles, index=None):
     return obs, pairs
 
 
-def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None):
+def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None, slop=0.0):
     """Contact rows at the start of a (sub)step: (obstacle Rows or None, pair Rows or None). `v0` is the
     velocity at the start of the step, `v` after the external forces and before any impulse. A grid model
-    passes its `partners` [n, K] (from `neighbours`)."""
+    passes its `partners` [n, K] (from `neighbours`). `slop`: the solver's contact slop, a fraction of the
+    contact distance (`CONTACT_SLOP`; 0: none)."""
     ct, dim = cs.ct, x.shape[0]
     xf, vf, v0f, wf = x.reshape(dim, -1), v.reshape(dim, -1), v0.reshape(dim, -1), w.reshape(-1)
     obs = _obstacle_geometry(cs, x, v, h) if ct.n_obstacles else None
@@ -554,23 +605,30 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None):
         pairs = pairs[:3] + (pairs[3] & live, pairs[4] & live, pairs[5], tol)
     obs, pairs = _first_impacts(ct, obs, pairs, xf.shape[1], index)
 
-    def finish(geometry, vn0, vn1, winv, k):
+    def finish(geometry, vn0, vn1, winv, k, distance, window):
         n, C, C_n, _, impact, toi, tol = geometry
         toi = jnp.where(impact, toi, 0)
         gap = _gap(C, tol)
-        target, target_c = _targets(gap, C_n, vn0, vn1, impact, toi, cs, beta, h)
-        return Rows(n, target, k, winv, toi, gap, target_c, near=C <= tol)
+        s = slop * distance
+        target, target_c = _targets(gap, C_n, vn0, vn1, impact, toi, cs, beta, h, PUSH_SLOPS * s)
+        # Warm-started: touching, impacts, and pairs within the slop of touching either way (a disc of a pile that
+        # lifts off its neighbour by less than the slop keeps the impulse it leant on it with; measured in
+        # docs/contacts.md). Obstacles keep gap <= 0: warm-starting those within the slop as well brought the pile
+        # to rest sooner (0.003 against 0.018 m/s at 8 s) but the float32 drape's gradients 1.9% off float64.
+        warm = impact | (gap <= (s if window else 0))
+        return Rows(n, target, k, winv, toi, gap, target_c, near=C <= tol, warm=warm)
 
     if obs is not None:
         n = obs[0]
         winv = jnp.broadcast_to(w[0], obs[1].shape)
-        obs = finish(obs, jnp.sum(n * v0[None], 1), jnp.sum(n * v[None], 1), winv, L.safe_reciprocal(winv))
+        obs = finish(obs, jnp.sum(n * v0[None], 1), jnp.sum(n * v[None], 1), winv, L.safe_reciprocal(winv),
+                     cs.radius, False)
     if pairs is not None:
         n = pairs[0]
         winv = wf[ia] + wf[ja]
         k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype)
-        vn0, vn1 = (jnp.sum(n * (a[:, ja] - a[:, ia]), 0) for a in (v0f, vf))
-        pairs = finish(pairs, vn0, vn1, winv, k)
+        vn0, vn1 = (_dot(n, a[:, ja] - a[:, ia]) for a in (v0f, vf))
+        pairs = finish(pairs, vn0, vn1, winv, k, cs.radius_flat[ia] + cs.radius_flat[ja], True)
         if index is not None:
             pairs = pairs._replace(i=ia, j=partners)
     return obs, pairs
@@ -579,7 +637,7 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None):
 def _solve_row(vrel, f: Rows, mu, ln, lt):
     """One contact row: normal impulse (clamped >= 0), then friction (clamped to the disc mu lam_n). Returns
     (impulse change P [dim, ...] on the second body, new lam_n, new lam_t)."""
-    vn = jnp.sum(vrel * f.n, 0)
+    vn = _dot(vrel, f.n)
     new_n = jnp.maximum(ln + (f.target - vn) * f.k, 0)
     return finish_row(vrel, f, mu, ln, new_n, lt)
 
@@ -589,9 +647,9 @@ def finish_row(vrel, f: Rows, mu, ln, new_n, lt):
     velocity after that impulse, clamped to the disc mu new_n. Returns (P, new_n, new_t) as `_solve_row`."""
     dn = new_n - ln
     vrel = vrel + (f.winv * dn) * f.n
-    vt = vrel - f.n * jnp.sum(vrel * f.n, 0)
+    vt = vrel - f.n * _dot(vrel, f.n)
     new_t = lt - vt * f.k
-    length, inv = L.safe_length(new_t)
+    length, inv = _length(new_t)
     limit = mu * new_n
     new_t = new_t * jnp.where(length >= limit, limit * inv, 1)
     return f.n * dn + (new_t - lt), new_n, new_t
@@ -648,36 +706,44 @@ def _slot(a, s):
     return None if a is None else jnp.take(a, s, axis=-1)
 
 
+def slot_major(a):
+    """A grid array [..., n, K] as [K, ..., n] (None stays None): what `lax.scan` over the slots takes."""
+    return None if a is None else jnp.moveaxis(a, -1, 0)
+
+
 def grid_pass(cs: ContactSystem, w, v, pairs: Rows, pn, pt, row=None, extra=None):
     """One pass over a grid model's pair rows, slot by slot: the rows of one slot (one per particle, whose
     partners may repeat) are solved together from the same v, relaxed by mass splitting (each takes the
     effective mass 1 / (c_i w_i + c_j w_j), c the slot's rows that push at each particle, as
-    jaxcon.solvers.contact_jacobi does), and the slots follow one another Gauss-Seidel-style. Returns
-    (v, pair_n, pair_t)."""
+    jaxcon.solvers.contact_jacobi does), and the slots follow one another Gauss-Seidel-style, a `lax.scan`
+    over the slots (slot-major copies of the rows, `slot_major`). A slot no row uses (the grid fills each
+    particle's slots from the first, so the last ones are often empty everywhere) is skipped (`lax.cond`: the
+    same values and derivatives). Returns (v, pair_n, pair_t)."""
     dim, shape = v.shape[0], v.shape
     wf = w.reshape(-1)
-    n, K = pn.shape
-    me = jnp.arange(n)
 
-    def one_slot(s, carry):
-        vf, pn, pt = carry
-        f = Rows(*(_slot(a, s) for a in pairs))
-        j = jnp.maximum(f.j, 0)
-        ln, lt = pn[:, s], pt[:, :, s]
-        vrel = vf[:, j] - vf
-        vn = jnp.sum(vrel * f.n, 0)
-        act = (((ln > 0) | (ln + (f.target - vn) * f.k > 0)) & (f.k > 0)).astype(vf.dtype)
-        c = jnp.zeros((n,), vf.dtype).at[me].add(act).at[j].add(act)
-        f = f._replace(k=L.safe_reciprocal(c * wf + c[j] * wf[j]) * (f.k > 0).astype(vf.dtype))
-        if row is None:
-            P, ln, lt = _solve_row(vrel, f, cs.friction, ln, lt)
-        else:
-            P, ln, lt = row(vrel, f, cs.friction, ln, lt, None if extra is None else tuple(_slot(a, s) for a in extra))
-        vf = vf.at[:, j].add(wf[j] * P) - wf * P
-        return vf, pn.at[:, s].set(ln), pt.at[:, :, s].set(lt)
+    def one_slot(vf, xs):
+        f, ln, lt, ex = xs
 
-    vf, pn, pt = lax.fori_loop(0, K, one_slot, (v.reshape(dim, -1), pn, pt))
-    return vf.reshape(shape), pn, pt
+        def solve(vf):
+            j = jnp.maximum(f.j, 0)
+            vrel = vf[:, j] - vf
+            vn = _dot(vrel, f.n)
+            act = (((ln > 0) | (ln + (f.target - vn) * f.k > 0)) & (f.k > 0)).astype(vf.dtype)
+            c = act + jnp.zeros_like(act).at[j].add(act)
+            g = f._replace(k=L.safe_reciprocal(c * wf + c[j] * wf[j]) * (f.k > 0).astype(vf.dtype))
+            if row is None:
+                P, new_n, new_t = _solve_row(vrel, g, cs.friction, ln, lt)
+            else:
+                P, new_n, new_t = row(vrel, g, cs.friction, ln, lt, ex)
+            return vf.at[:, j].add(wf[j] * P) - wf * P, (new_n, new_t)
+
+        return lax.cond(jnp.any(f.k > 0), solve, lambda vf: (vf, (ln, lt)), vf)
+
+    xs = (Rows(*(slot_major(a) for a in pairs)), slot_major(pn), slot_major(pt),
+          None if extra is None else tuple(slot_major(a) for a in extra))
+    vf, (pn, pt) = lax.scan(one_slot, v.reshape(dim, -1), xs)
+    return vf.reshape(shape), jnp.moveaxis(pn, 0, -1), jnp.moveaxis(pt, 0, -1)
 
 
 def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, factor=1.0):
@@ -686,10 +752,10 @@ def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, 
     ct, mu = cs.ct, cs.friction
 
     def project(f: Rows, ln, lt):
-        active = ((f.gap <= 0) | (f.toi > 0)) & (f.k > 0)
+        active = f.warm & (f.k > 0)
         ln = jnp.maximum(ln, 0) * factor * active.astype(ln.dtype)
-        lt = (lt - f.n * jnp.sum(lt * f.n, 0)) * factor
-        length, inv = L.safe_length(lt)
+        lt = (lt - f.n * _dot(lt, f.n)) * factor
+        length, inv = _length(lt)
         limit = mu * ln
         return ln, lt * jnp.where(length >= limit, limit * inv, 1) * active.astype(ln.dtype)
 
@@ -797,7 +863,8 @@ def impact_times(cs: ContactSystem, obs: Rows, pairs: Rows, imp: Impulses, shape
         across = jnp.where(touching, jnp.maximum(t[ia], t[ja]), 0)
         return t.at[ia].max(across).at[ja].max(across)
 
-    flat = lax.fori_loop(0, TOI_PASSES, carry, flat)
+    # Without an impact nothing is carried (the same values and derivatives): a pile at rest skips the passes.
+    flat = lax.cond(jnp.any(flat > 0), lambda t: lax.fori_loop(0, TOI_PASSES, carry, t), lambda t: t, flat)
     return flat.reshape((1,) + shape[1:])
 
 
@@ -809,7 +876,7 @@ def impact_times(cs: ContactSystem, obs: Rows, pairs: Rows, imp: Impulses, shape
 OVERLAP_PASSES = 8
 
 
-def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pairs: Optional[Rows] = None):
+def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pairs: Optional[Rows] = None, slop=0.0):
     """Move overlapping contacts apart at position level (non-linear Gauss-Seidel, as Box2D v2's position
     solver), `passes` times (default: `OVERLAP_PASSES` with pairs, `GRID_OVERLAP_PASSES` with a grid, else 1):
     pair rounds, then obstacles (which cannot move, so they have the last word; a heavy ball on light ones
@@ -817,7 +884,8 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
     are not touched, so no kinetic energy or momentum is added; it only acts where the velocity solve left an
     overlap (an under-converged cluster, or the time-of-impact correction of a particle whose velocity was
     also changed by a later contact). A grid model's pairs (the rows `pairs` of this step) are projected
-    slot by slot instead (the overlaps of one slot together, each split between the overlaps at its particles)."""
+    slot by slot instead (the overlaps of one slot together, each split between the overlaps at its particles).
+    `slop`: the overlaps are projected onto `slop` times the contact distance, not onto 0 (`CONTACT_SLOP`)."""
     ct = cs.ct
     dim, shape = x.shape[0], x.shape
     r = cs.radius[0]
@@ -827,12 +895,12 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
         for p in range(ct.n_planes):
             nrm = cs.plane_normal[p].reshape((dim,) + (1,) * (x.ndim - 1))
             C = jnp.sum(nrm * x, 0) - cs.plane_offset[p] - r
-            x = x + nrm * (jnp.maximum(-C, 0) * (k > 0))
+            x = x + nrm * (jnp.maximum(-C - slop * r, 0) * (k > 0))
         for q in range(ct.n_spheres):
             d = x - cs.sphere_centre[q].reshape((dim,) + (1,) * (x.ndim - 1))
             dist, n = direction(d)
             C = dist - cs.sphere_radius[q] - r
-            x = x + n * (jnp.maximum(-C, 0) * (k > 0))
+            x = x + n * (jnp.maximum(-C - slop * r, 0) * (k > 0))
         return x
 
     def pair_rounds(x):
@@ -844,25 +912,29 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
             i, j = ia[q], ja[q]
             dist, n = direction(xf[:, j] - xf[:, i])
             winv = wf[i] + wf[j]
-            push = jnp.maximum(rf[i] + rf[j] - dist, 0) * L.safe_reciprocal(winv) * valid[q]
+            push = jnp.maximum((1 - slop) * (rf[i] + rf[j]) - dist, 0) * L.safe_reciprocal(winv) * valid[q]
             return _pair_apply(ct, xf, q, wf[i], wf[j], n * push)
 
         return lax.fori_loop(0, ct.rounds, one_round, x.reshape(dim, -1)).reshape(shape)
 
     def grid_pairs(x):
         wf, rf = w.reshape(-1), cs.radius_flat
-        me = jnp.arange(wf.shape[0])
 
-        def one_slot(s, xf):                      # slot by slot, as grid_pass
-            j = jnp.maximum(pairs.j[:, s], 0)
-            dist, n = direction(xf[:, j] - xf)
-            over = jnp.maximum(rf + rf[j] - dist, 0) * (pairs.k[:, s] > 0)
-            hit = (over > 0).astype(xf.dtype)
-            c = jnp.zeros_like(wf).at[me].add(hit).at[j].add(hit)
-            P = n * (over * L.safe_reciprocal(c * wf + c[j] * wf[j]))
-            return xf.at[:, j].add(wf[j] * P) - wf * P
+        def one_slot(xf, xs):                     # slot by slot, as grid_pass (empty slots skipped)
+            jj, kk = xs
 
-        return lax.fori_loop(0, pairs.j.shape[1], one_slot, x.reshape(dim, -1)).reshape(shape)
+            def project(xf):
+                j = jnp.maximum(jj, 0)
+                dist, n = direction(xf[:, j] - xf)
+                over = jnp.maximum((1 - slop) * (rf + rf[j]) - dist, 0) * (kk > 0)
+                hit = (over > 0).astype(xf.dtype)
+                c = hit + jnp.zeros_like(hit).at[j].add(hit)
+                P = n * (over * L.safe_reciprocal(c * wf + c[j] * wf[j]))
+                return xf.at[:, j].add(wf[j] * P) - wf * P
+
+            return lax.cond(jnp.any(kk > 0), project, lambda xf: xf, xf), None
+
+        return lax.scan(one_slot, x.reshape(dim, -1), (slot_major(pairs.j), slot_major(pairs.k)))[0].reshape(shape)
 
     def one_pass(_, x):
         if ct.n_pairs:
@@ -873,7 +945,22 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
 
     if passes is None:
         passes = GRID_OVERLAP_PASSES if ct.has_grid else OVERLAP_PASSES if ct.n_pairs else 1
-    return one_pass(0, x) if passes == 1 else lax.fori_loop(0, passes, one_pass, x)
+    if passes == 1:
+        return one_pass(0, x)
+    if not ct.has_grid:
+        return lax.fori_loop(0, passes, one_pass, x)
+    # A grid model's passes stop once one moves no particle by more than GRID_PASS_STOP of the slop (of the
+    # smallest radius; with no slop, once one moves nothing): a pile at rest, whose velocity solve leaves no
+    # overlap beyond the slop, takes one pass instead of GRID_OVERLAP_PASSES.
+    limit = lax.stop_gradient(GRID_PASS_STOP * slop * jnp.min(cs.radius_flat))
+
+    def gated(_, carry):
+        def run(x):
+            y = one_pass(0, x)
+            return y, lax.stop_gradient(jnp.max(jnp.abs(y - x))) > limit
+        return lax.cond(carry[1], run, lambda x: (x, carry[1]), carry[0])
+
+    return lax.fori_loop(0, passes, gated, (x, jnp.ones((), bool)))[0]
 
 
 def zero_impulses(topo: Topology, ct: ContactTopology, dtype) -> Impulses:

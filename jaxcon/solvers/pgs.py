@@ -79,6 +79,12 @@ class PGS(Solver):
         `implicit=True`.
       slop: split impulses' smallest slop, a share of each rod's and rope's rest length in [0, 1), a
         differentiable leaf (default 0.005). Not used by Baumgarte.
+      contact_slop: the overlap, as a fraction of the contact distance (r_i + r_j; r for a plane or sphere),
+        that contacts keep without being pushed out (Box2D's linear slop), a differentiable leaf in [0, 0.5];
+        default `contact.CONTACT_SLOP` = 0.005, half a percent of a diameter. The Baumgarte term pushes out
+        only the overlap beyond two of it, the position safety pass projects onto it, and pairs within it of touching
+        are warm-started: what lets a pile come to rest (docs/contacts.md, piles at rest). 0 is the method
+        before (resting contacts at C = 0, solved cold every other step).
       warm_start_gradient: if False, no gradient flows through the warm-start impulses (static). The forward
         pass is unchanged and the gradient becomes a truncated one. Measured on a swinging 16x16 cloth it does
         not stop long-horizon gradient growth (that growth is the physics: the motion is chaotic, and a
@@ -95,6 +101,7 @@ class PGS(Solver):
     implicit: bool = static_field(default=False)
     stabilization: str = static_field(default="baumgarte")
     slop: Any = 0.005
+    contact_slop: Any = contact.CONTACT_SLOP
 
     def __post_init__(self):
         check_stabilization("PGS", self.stabilization)
@@ -109,6 +116,7 @@ class PGS(Solver):
         check_bool("PGS", "implicit", self.implicit)
         check_scalar("PGS", "beta", self.beta, 0.0, 1.0)
         check_scalar("PGS", "warm_start_factor", self.warm_start_factor, 0.0, 1.0)
+        check_scalar("PGS", "contact_slop", self.contact_slop, 0.0, 0.5)
 
     supports_contacts = True
     supports_grid = True
@@ -164,11 +172,12 @@ class PGS(Solver):
             return grid_step(sys, x, v, h, functools.partial(self._substep_contacts, sys, x, v, lam_ws, h))
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
+        contact_slop = jnp.asarray(self.contact_slop, dtype)
         split = self.stabilization == "split"
         share = jnp.asarray(self.slop, dtype)
         v_free, v, fr, bias, obs, pairs, lam, imp, slop = contact_begin(
             sys, x, v, lam_ws, beta, h, share if split else None, self.warm_start, self._factor(dtype),
-            self.warm_start_gradient, found)
+            self.warm_start_gradient, found, contact_slop)
         block_sweep = self._block_sweep(topo, fr, bias, h)
 
         def sweeps(obs, pairs):
@@ -181,7 +190,9 @@ class PGS(Solver):
 
         v, lam, imp = restitution_phases(sys, v_free, obs, pairs, self.iterations, (v, lam, imp), sweeps)
         rods_pass = (lambda x: split_position_pass(sys, x, self.iterations, slop)) if split and fr else None
-        return contact_end(sys, x, v, v_free, obs, pairs, imp, h, passes=None, rods_pass=rods_pass), v, (lam, imp)
+        x = contact_end(sys, x, v, v_free, obs, pairs, imp, h, passes=None, rods_pass=rods_pass,
+                        contact_slop=contact_slop)
+        return x, v, (lam, imp)
 
     @staticmethod
     def _block_sweep(topo, fr, bias, h):
