@@ -83,6 +83,30 @@ def test_library_does_not_import_the_benchmarks():
             assert not bad, f"{name} imports {bad}: the library must not depend on the benchmarks"
 
 
+def test_core_imports_nothing_above_it():
+    """`core` (models, layouts, rows, the time loop, the contact data types) depends on no solver and nothing else
+    of the package: an import inside a function counts as one at the top (`_graph` reads every import
+    statement). Solvers consume what core makes (docs/architecture.md)."""
+    graph = _graph()
+    assert graph["jaxcon.core.sim"] and graph["jaxcon.core.system"]            # the graph sees their imports
+    for name, deps in graph.items():
+        if name.startswith("jaxcon.core"):
+            bad = sorted(d for d in deps if not d.startswith("jaxcon.core"))
+            assert not bad, f"{name} imports {bad}: core must not depend on solvers or anything above it"
+
+
+def test_the_import_graph_counts_imports_inside_functions(tmp_path):
+    """The check above would miss `def f(): from jaxcon.solvers import contact` if `_graph` read only the
+    module's top level."""
+    tree = ast.parse("def f():\n    from jaxcon.solvers.contact import rows\n")
+    names = {"jaxcon.solvers.contact": None, "jaxcon.solvers": None}
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            found |= _resolve("jaxcon.core.sim", node, names)
+    assert found == {"jaxcon.solvers.contact"}
+
+
 def test_no_function_longer_than_100_lines():
     long = []
     for name, (path, tree) in _modules().items():

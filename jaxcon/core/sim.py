@@ -15,7 +15,7 @@ from jaxcon.core.contact import MAX_ALL_PAIRS_PARTICLES
 from jaxcon.core.model import Model, State, Trajectory, check_model, check_state
 from jaxcon.core.pytree import concrete
 from jaxcon.core.system import Solver, System
-from jaxcon.solvers import contact as C
+from jaxcon.core import contact as C
 
 
 def _check_call(owner, model, state, solver, dt, steps=None):

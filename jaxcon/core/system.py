@@ -7,6 +7,7 @@ import jax.numpy as jnp
 
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
+from jaxcon.core.contact import ContactSystem
 from jaxcon.core.model import Model
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.topology import Topology
@@ -29,14 +30,13 @@ class System:
     rest: tuple
     gravity: Array
     topology: Topology = static_field()
-    contact: Any = None          # a ContactSystem (jaxcon.solvers.contact) for models with contacts
+    contact: Any = None          # a ContactSystem (jaxcon.core.contact) for models with contacts
     accel: Any = None            # the step's external acceleration w F [dim, *view], or None
     sets: tuple = ()             # per jc.Constraint set: its leaves in its block's table (`rows.SetSystem`)
     cons: tuple = static_field(default=())   # the sets' `Constraint`s with their leaves dropped (fn, kind, name)
 
     @classmethod
     def from_model(cls, model: Model, dtype) -> "System":
-        from jaxcon.solvers.contact import ContactSystem
         t = model.topology
         w = L.per_particle_in(t, jnp.asarray(model.inv_mass, dtype))
         rest = jnp.asarray(model.rest_length, dtype)

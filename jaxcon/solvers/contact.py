@@ -45,74 +45,18 @@ import numpy as np
 from jax import lax
 
 from jaxcon.core import layout as L
-from jaxcon.core.contact import ContactTopology
-from jaxcon.core.pytree import pytree_dataclass, static_field
-from jaxcon.core.topology import Topology
+from jaxcon.core.contact import (  # noqa: F401  (the contact data types, re-exported here)
+    ContactSystem,
+    ContactTopology,
+    Impulses,
+    contacts_in,
+    contacts_out,
+    partners_in,
+    partners_out,
+    zero_impulses,
+)
 
 Array = Any
-
-
-@pytree_dataclass
-class ContactSystem:
-    """A model's contact leaves in the internal layout: radius [1, *view] and [n] (internal order)."""
-
-    radius: Array
-    radius_flat: Array
-    friction: Array
-    restitution: Array
-    threshold: Array
-    plane_normal: Array
-    plane_offset: Array
-    sphere_centre: Array
-    sphere_radius: Array
-    ct: ContactTopology = static_field()
-
-    @classmethod
-    def from_model(cls, model, dtype) -> Optional["ContactSystem"]:
-        if model.contact is None:
-            return None
-        t = model.topology
-        leaves = {k: jnp.asarray(getattr(model, k), dtype) for k in _LEAVES}
-        bad = _invalid(leaves)
-        # A value that `Model` refuses when it is concrete (NaN, negative friction, restitution outside [0, 1],
-        # ...) can still arrive traced: an optimiser step with a NaN gradient inside jit. Every solver then
-        # computes with NaN leaves, so that the rollout's outputs are NaN and the bad value is seen (a NaN
-        # friction alone only made PGS's friction clamp `|lam_t| >= NaN` false: a finite, frictionless run).
-        leaves = {k: jnp.where(bad, jnp.nan, v) for k, v in leaves.items()}
-        r = L.per_particle_in(t, leaves["radius"])
-        normal = L.safe_norm(leaves["plane_normal"], axis=-1)[1]     # unit, also for fitted or traced normals
-        return cls(r, r.reshape(t.n), leaves["friction"], leaves["restitution"], leaves["restitution_threshold"],
-                   normal, leaves["plane_offset"], leaves["sphere_centre"], leaves["sphere_radius"], model.contact)
-
-
-_LEAVES = ("radius", "friction", "restitution", "restitution_threshold", "plane_normal", "plane_offset",
-           "sphere_centre", "sphere_radius")
-_NONNEGATIVE = ("radius", "friction", "restitution", "restitution_threshold", "sphere_radius")
-
-
-def _invalid(leaves: dict):
-    """Whether any contact leaf holds a value `Model` refuses (jaxcon.core.model's contact checks): a
-    non-finite value, a negative radius, friction, restitution, threshold or sphere radius, or restitution
-    above 1. A scalar bool (traced under jit)."""
-    bad = jnp.zeros((), bool)
-    for k, v in leaves.items():
-        bad = bad | ~jnp.all(jnp.isfinite(v))
-        if k in _NONNEGATIVE:
-            bad = bad | jnp.any(v < 0)
-    return bad | jnp.any(leaves["restitution"] > 1)
-
-
-class Impulses(NamedTuple):
-    """Accumulated contact impulses, internal layout: obstacles n [Q, *view], t [Q, dim, *view]; pairs
-    n [R, S], t [dim, R, S], or for a grid model n [n, K], t [dim, n, K] with `partners` [n, K] (int32, internal
-    indices, -1 empty) and `overflow` (int32 scalar) of the (sub)step that made them (None without a grid)."""
-
-    obs_n: Array
-    obs_t: Array
-    pair_n: Array
-    pair_t: Array
-    partners: Array = None
-    overflow: Array = None
 
 
 class Rows(NamedTuple):
@@ -181,74 +125,6 @@ def overlap_normal(d0, d, R):
     dist, n = direction(d)
     deep = dist0 - R < -_tolerance(_magnitude(d0) + R)
     return jnp.where(deep, n0, n), jnp.where(deep, _dot(n0, d), dist) - R
-
-
-# ---- layout --------------------------------------------------------------------------------------------------
-def contacts_in(topo: Topology, ct: ContactTopology, cn, ctan) -> Impulses:
-    """User order (cn [k], ctan [k, dim]) -> internal `Impulses`."""
-    n, q, dim = topo.n, ct.n_obstacles, topo.dim
-    obs_n = cn[: q * n].reshape(q, n)
-    obs_t = jnp.swapaxes(ctan[: q * n].reshape(q, n, dim), 1, 2)
-    if topo.order is not None:
-        obs_n, obs_t = jnp.take(obs_n, topo.order, axis=-1), jnp.take(obs_t, topo.order, axis=-1)
-    obs_n, obs_t = obs_n.reshape((q,) + topo.view), obs_t.reshape((q, dim) + topo.view)
-    if ct.has_grid:
-        K, uid = ct.grid_k, ct.grid_uid.array
-        gn = cn[q * n:].reshape(n, K)[uid]
-        gt = jnp.moveaxis(ctan[q * n:].reshape(n, K, dim)[uid], -1, 0)
-        return Impulses(obs_n, obs_t, gn, gt, None, jnp.zeros((), jnp.int32))
-    R, S = ct.rounds, ct.width
-    pn = jnp.zeros((R * S,), cn.dtype)
-    pt = jnp.zeros((dim, R * S), cn.dtype)
-    if ct.n_pairs:
-        pn = pn.at[ct.slot.array].set(cn[q * n:])
-        pt = pt.at[:, ct.slot.array].set(ctan[q * n:].T)
-    return Impulses(obs_n, obs_t, pn.reshape(R, S), pt.reshape(dim, R, S))
-
-
-def contacts_out(topo: Topology, ct: ContactTopology, imp: Impulses):
-    """Internal `Impulses` (any leading axes) -> user order (cn [..., k], ctan [..., k, dim])."""
-    q, dim = ct.n_obstacles, topo.dim
-    lead = imp.obs_n.shape[: imp.obs_n.ndim - 1 - len(topo.view)]
-    on = imp.obs_n.reshape(lead + (q, topo.n))
-    ot = imp.obs_t.reshape(lead + (q, dim, topo.n))
-    if topo.order is not None:
-        on, ot = jnp.take(on, topo.pos, axis=-1), jnp.take(ot, topo.pos, axis=-1)
-    ns = [on.reshape(lead + (q * topo.n,))]
-    ts = [jnp.swapaxes(ot, -1, -2).reshape(lead + (q * topo.n, dim))]
-    if ct.n_pairs:
-        pn = imp.pair_n.reshape(lead + (-1,))
-        pt = imp.pair_t.reshape(lead + (dim, -1))
-        ns.append(jnp.take(pn, ct.slot.array, axis=-1))
-        ts.append(jnp.swapaxes(jnp.take(pt, ct.slot.array, axis=-1), -1, -2))
-    if ct.has_grid:
-        pos = topo.pos if topo.order is not None else np.arange(topo.n)     # user particle -> internal row
-        n, K = topo.n, ct.grid_k
-        ns.append(jnp.take(imp.pair_n, pos, axis=-2).reshape(lead + (n * K,)))
-        pt = jnp.moveaxis(jnp.take(imp.pair_t, pos, axis=-2), -3, -1)        # [..., n, K, dim]
-        ts.append(pt.reshape(lead + (n * K, dim)))
-    return jnp.concatenate(ns, -1), jnp.concatenate(ts, -2)
-
-
-def partners_in(ct: ContactTopology, partners):
-    """A state's contact_partners (user order, [n, K]; None: unknown) -> internal rows and indices."""
-    n, K = ct.n, ct.grid_k
-    if partners is None:
-        return jnp.full((n, K), -1, jnp.int32)
-    uid = ct.grid_uid.array
-    internal = np.empty(n, np.int32)
-    internal[uid] = np.arange(n)
-    p = jnp.asarray(partners, jnp.int32)[uid]
-    return jnp.where(p >= 0, jnp.asarray(internal)[jnp.clip(p, 0, n - 1)], -1).astype(jnp.int32)
-
-
-def partners_out(ct: ContactTopology, partners):
-    """Internal partners [..., n, K] -> user order (rows by user particle, user indices, -1 kept)."""
-    uid = jnp.asarray(ct.grid_uid.array)
-    internal = np.empty(ct.n, np.int64)
-    internal[ct.grid_uid.array] = np.arange(ct.n)
-    p = jnp.take(partners, internal, axis=-2)
-    return jnp.where(p >= 0, uid[jnp.maximum(p, 0)], -1).astype(jnp.int32)
 
 
 # ---- the neighbour grid -----------------------------------------------------------------------------------------
@@ -961,14 +837,3 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
         return lax.cond(carry[1], run, lambda x: (x, carry[1]), carry[0])
 
     return lax.fori_loop(0, passes, gated, (x, jnp.ones((), bool)))[0]
-
-
-def zero_impulses(topo: Topology, ct: ContactTopology, dtype) -> Impulses:
-    q, dim = ct.n_obstacles, topo.dim
-    if ct.has_grid:
-        n, K = topo.n, ct.grid_k
-        return Impulses(jnp.zeros((q,) + topo.view, dtype), jnp.zeros((q, dim) + topo.view, dtype),
-                        jnp.zeros((n, K), dtype), jnp.zeros((dim, n, K), dtype), jnp.full((n, K), -1, jnp.int32),
-                        jnp.zeros((), jnp.int32))
-    return Impulses(jnp.zeros((q,) + topo.view, dtype), jnp.zeros((q, dim) + topo.view, dtype),
-                    jnp.zeros((ct.rounds, ct.width), dtype), jnp.zeros((dim, ct.rounds, ct.width), dtype))
