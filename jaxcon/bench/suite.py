@@ -209,8 +209,10 @@ def batched(small: bool, repeats: int, sizes=None, only_default_backend: bool = 
 
     steps = 24 if small else 240
     pend = tuple(sizes) if sizes else (1, 64) if small else (1, 1024, 16384, 131072)
-    cases = [("double_pendulum", pend), ("cloth", (2,) if small else (64,))]
-    if not small and not sizes:   # the small run (the suite's) leaves out billiards: its path is a vmap of rollout
+    # the small run (the suite's) has the pendulums only: tests/test_throughput.py runs the cloth's batched modes,
+    # and billiards' path is a vmap of rollout
+    cases = [("double_pendulum", pend)] + ([] if small else [("cloth", (64,))])
+    if not small and not sizes:
         cases.append(("billiards", (64, 256)))
     rows = []
     for backend in [jax.default_backend()] if only_default_backend else backends():
