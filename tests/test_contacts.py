@@ -375,6 +375,7 @@ def test_fit_recovers_restitution_from_a_bouncing_ball():
         jc.fit(chain, cstate, jc.PGS(10), 1 / 240, ctraj.x, params=("restitution",), progress=False)
 
 
+@pytest.mark.optimised          # long breaks: 8.5 s at the lowest effort, 5.6 s here
 def test_off_axis_breaks_never_gain_energy_nor_overlap():
     """Off-axis breaks put several impacts in one cluster in one step (the -0.02 rad break has a ball hit one
     that is pressed into a corner): Newton's law applied to all of them at once gained 3.2% of the kinetic

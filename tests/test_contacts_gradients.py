@@ -1,9 +1,9 @@
 """Derivatives through contacts in float32 and float64, and bad contact leaves under jit (issue 22).
 
 - Reverse mode (jax.grad) of every contact leaf (radius, friction, restitution, restitution_threshold,
-  plane_normal, plane_offset, sphere_centre, sphere_radius) equals forward mode (jax.jvp) on each contact
-  scene (falling chain, billiards, drape) in float32 and float64 with PGS, and float64 central differences
-  (along a random direction per leaf); the float32 gradient agrees with those differences too. Before, the
+  plane_normal, plane_offset, sphere_centre, sphere_radius) with PGS equals float64 central differences (along
+  a random direction per leaf) on each contact scene (falling chain, billiards, drape), in float32 and float64,
+  and forward mode (jax.jvp) in float32 on the falling chain and the drape and in float64 on the drape. Before, the
   falling chain's friction gradient was NaN in float32 (restitution_scale's unused root: 0 * inf), and the
   drape's float64 gradient was 2% off jacfwd (gaps within rounding of 0 were classified by each program's own
   rounding). The other contact solvers' gradients are finite.
@@ -85,10 +85,10 @@ def test_falling_chain_friction_gradient_in_float32():
 @pytest.mark.parametrize("name", ["falling_chain", "billiards", "drape"])
 def test_contact_leaf_gradients_reverse_equals_forward_and_differences(name):
     """Reverse against forward mode along a random direction of all the leaves together (jvp: one compiled
-    program where jacfwd would be one as well, but ~20 times the work) in float32, and in float64 on the drape
-    (where they were 2% apart; elsewhere float64 central differences, below, check the reverse mode alone, to
-    save the suite a compilation); then float64 central differences along a random direction per leaf, which
-    both dtypes' gradients must match."""
+    program where jacfwd would be one as well, but ~20 times the work) in float32 on the falling chain and the
+    drape, and in float64 on the drape (where they were 2% apart); then float64 central differences along a
+    random direction per leaf, which both dtypes' reverse-mode gradients must match on every scene (billiards is
+    checked by those alone, to save the suite a 10 s compilation)."""
     rng = np.random.default_rng(0)
     grads = {}
     for dtype in (np.float32, np.float64):
@@ -97,7 +97,7 @@ def test_contact_leaf_gradients_reverse_equals_forward_and_differences(name):
         g = value_and_grad(p)[1]
         rev = _flat(g, p)
         assert np.all(np.isfinite(rev)), (dtype, g)
-        if dtype == np.float32 or name == "drape":
+        if (dtype == np.float32 and name != "billiards") or name == "drape":
             t = {k: jnp.asarray(rng.normal(size=np.shape(a)), dtype) for k, a in p.items()}
             fwd = float(jax.jit(lambda p, t: jax.jvp(loss, (p,), (t,))[1])(p, t))
             dot = float(rev @ _flat(t, p))

@@ -110,8 +110,13 @@ def run(solver_name, case_name):
     return out
 
 
-@pytest.mark.parametrize("case", list(CASES))
-@pytest.mark.parametrize("solver", CONTACT_SOLVERS)
+# SoftStep's 16 substeps on the 16x16 drape run long enough that XLA's default effort pays (19 s -> 6.5 s)
+_OPTIMISED = {("SoftStep", "drape_from_1m")}
+
+
+@pytest.mark.parametrize("solver, case", [
+    pytest.param(s, c, id=f"{s}-{c}", marks=[pytest.mark.optimised] if (s, c) in _OPTIMISED else [])
+    for c in CASES for s in CONTACT_SOLVERS])
 def test_hard_contact_case(solver, case):
     r = run(solver, case)
     if (solver, case) not in EXPECT:
