@@ -65,7 +65,7 @@ def pytest_unconfigure(config):
         shutil.rmtree(os.environ["JAX_COMPILATION_CACHE_DIR"], ignore_errors=True)
 
 
-_MAX_MAPS = 24_000      # well under vm.max_map_count = 65,530; the most one test added was 2,942 (2026-11-24)
+_MAX_MAPS = 36_000      # under vm.max_map_count = 65,530 by ten times the most one test added (2,942, 2026-11-24)
 
 
 def _map_count():
@@ -84,3 +84,39 @@ def _bound_live_executables():
     if n is not None and n > _MAX_MAPS:
         jax.clear_caches()
         gc.collect()
+
+
+# The extended set (`python -m pytest -m slow`): variants whose property the default suite also checks, on a
+# sibling case or in another test, kept out of the default run to hold it under 15 minutes on 2 cores. Each was
+# in the default suite and passed in the full run of 2026-11-24 (692 passed) before moving here.
+SLOW = {
+    # billiards' gradient against differences: test_contacts.py::test_billiards_shot_gradient_matches_...; every
+    # contact leaf's gradient: the falling-chain and drape cases of the same test
+    "tests/test_contacts_gradients.py::test_contact_leaf_gradients_reverse_equals_forward_and_differences[billiards]",
+    # SoftStep's contact gradients are finite: its drape hard case and test_contacts_solvers' gradient tests
+    "tests/test_contacts_gradients.py::test_other_solvers_contact_leaf_gradients_are_finite_in_float32"
+    "[SoftStep-drape]",
+    # the speed-vs-error bench's files and table; notebook 02 runs its scenes
+    "tests/test_speed_vs_error.py::test_speed_vs_error_small",
+    # the fit's defaults: test_fit.py::test_defaults_fit_a_chain_released_from_a_violated_start
+    "tests/test_fit.py::test_defaults_fit_cloth_rest_lengths_from_nominal",
+    # batched_rollout equals vmap: PGS (Baumgarte) and every other solver stay; split impulses under vmap:
+    # test_split_impulses.py::test_split_works_in_float32_and_under_vmap
+    "tests/test_batching.py::test_batched_rollout_equals_vmap_of_rollout[PGSsplit]",
+    # a set's parameter and compliance gradients: plain PGS and every other solver stay
+    "tests/test_constraints.py::test_gradients_wrt_a_constraints_params_and_compliance[PGS-implicit]",
+    "tests/test_constraints.py::test_gradients_wrt_a_constraints_params_and_compliance[PGS-split]",
+    # the bench's plain scatter-add reference: a bench concern (test_batching checks the batch-minor reference)
+    "tests/test_solvers_a.py::test_plain_scatter_add_reference_is_the_same_pgs",
+}
+
+
+@pytest.hookimpl(tryfirst=True)          # before `-m` deselects by marker
+def pytest_collection_modifyitems(config, items):
+    found = {item.nodeid for item in items}
+    files = {n.split("::")[0] for n in found}
+    missing = sorted(n for n in SLOW if n.split("::")[0] in files and n not in found)
+    assert not missing, f"tests/conftest.py SLOW names tests that do not exist: {missing}"
+    for item in items:
+        if item.nodeid in SLOW:
+            item.add_marker(pytest.mark.slow)
