@@ -7,12 +7,12 @@ options, for several solvers, frame rates of the simulation and noise seeds. Pri
 Run from the repository root: python benchmarks/fit_recording.py [solver=rate,...] [seeds...]
   e.g. python benchmarks/fit_recording.py RATTLE=240,RATTLE=960,PGS=240,PGS=960 23 0 1 2 3
 """
+import pathlib
 import sys
 import time
 import warnings
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
@@ -21,17 +21,11 @@ import jaxcon as jc  # noqa: E402
 from jaxcon.bench.references.scipy_ode import RECORDING, double_pendulum_recording  # noqa: E402
 from jaxcon.bench.timing import machine  # noqa: E402
 
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent / "tests"))
+from reference import pendulum_setup  # noqa: E402  (the setup tests/test_fit_recordings.py fits through)
+
 SOLVERS = {"RATTLE": lambda: jc.RATTLE(10), "PGS": lambda: jc.PGS(10),
            "PGS-split": lambda: jc.PGS(10, stabilization="split")}
-
-
-def pendulum_setup(theta, model, state, solver):
-    a, w, L = theta["angles"], theta["omegas"], theta["lengths"]
-    x = jnp.cumsum(jnp.stack([L * jnp.sin(a), -L * jnp.cos(a)], -1), 0)
-    v = jnp.cumsum(jnp.stack([jnp.cos(a), jnp.sin(a)], -1) * (L * w)[:, None], 0)
-    inv_mass = jnp.stack([jnp.zeros(()), jnp.ones(()), 1 / theta["ratio"]])
-    return (model.replace(rest_length=L, inv_mass=inv_mass),
-            state.replace(x=state.x.at[1:].set(x), v=state.v.at[1:].set(v)), solver)
 
 
 def one(solver_name, rate, seed):

@@ -11,7 +11,7 @@ import warnings
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from reference import RECORDING, chain_positions, double_pendulum_recording
+from reference import RECORDING, chain_positions, double_pendulum_recording, pendulum_setup
 
 import jaxcon as jc
 from jaxcon.identification import uncertainty as unc
@@ -37,17 +37,6 @@ def _true_velocities():
     a, w = np.array(RECORDING["angles"]), np.array(RECORDING["omegas"])
     steps = np.stack([np.cos(a), np.sin(a)], -1) * (L_TRUE * w)[:, None]
     return np.cumsum(steps, 0)
-
-
-def pendulum_setup(theta, model, state, solver):
-    """Reduced coordinates for the start (angles, angular velocities), both lengths and the mass ratio m2 / m1
-    (m1 = 1 kg: with positions alone only the ratio is identifiable)."""
-    a, w, L = theta["angles"], theta["omegas"], theta["lengths"]
-    x = jnp.cumsum(jnp.stack([L * jnp.sin(a), -L * jnp.cos(a)], -1), 0)
-    v = jnp.cumsum(jnp.stack([jnp.cos(a), jnp.sin(a)], -1) * (L * w)[:, None], 0)
-    inv_mass = jnp.stack([jnp.zeros(()), jnp.ones(()), 1 / theta["ratio"]])
-    return (model.replace(rest_length=L, inv_mass=inv_mass),
-            state.replace(x=state.x.at[1:].set(x), v=state.v.at[1:].set(v)), solver)
 
 
 @pytest.mark.optimised             # ~90 Levenberg-Marquardt updates over 720 steps
