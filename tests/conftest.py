@@ -47,6 +47,7 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs",
 jax.config.update("jax_persistent_cache_min_entry_size_bytes",
                   int(os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"]))
 
+
 @pytest.fixture(autouse=True)
 def _optimised(request):
     """`@pytest.mark.optimised`: this test's programs compile at XLA's default effort (module docstring)."""

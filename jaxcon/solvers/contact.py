@@ -45,14 +45,10 @@ import numpy as np
 from jax import lax
 
 from jaxcon.core import layout as L
-from jaxcon.core.contact import (  # noqa: F401  (the contact data types, re-exported here)
+from jaxcon.core.contact import (  # noqa: F401  (the contact data types the solvers use, re-exported here)
     ContactSystem,
     ContactTopology,
     Impulses,
-    contacts_in,
-    contacts_out,
-    partners_in,
-    partners_out,
     zero_impulses,
 )
 

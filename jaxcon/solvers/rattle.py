@@ -14,16 +14,18 @@ from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
 from jaxcon.solvers.common import clamp_ropes, frames, shake_sweep
 
-# A sweep loop of at most 8 iterations is unrolled when its iterations times the code blocks one sweep emits (one per block of the
-# topology: an unrolled layout's colour each, a table, star or constraint set one scan) is at most this: it lets
-# XLA fuse the small per-sweep ops, a few times faster on small systems, with the same result. Unrolling more
-# costs compile time for little gain: RATTLE(6) on the unrolled 11-colour cloth of tests/test_core.py compiled
-# in 10.9 s unrolled against 0.7 s for PGS (2-core VM, XLA at its lowest effort).
+# A sweep loop is unrolled when it has at most _UNROLL_ITERATIONS iterations and iterations times the code blocks
+# one sweep emits (one per topology block: a colour each in the unrolled layout; a table, star or constraint set
+# one scan) is at most _UNROLL_BLOCKS. Unrolling lets XLA fuse the small per-sweep ops (a few times faster on
+# small systems, same result); on many blocks it costs compile time and run time: RATTLE(5) on the unrolled 32x32
+# cloth (8 blocks) compiled in 23 s and ran at 157 ms/step unrolled, against 1.6 s and 0.72 ms/step as a loop
+# (docs/performance.md).
+_UNROLL_ITERATIONS = 8
 _UNROLL_BLOCKS = 16
 
 
 def _unroll(iterations: int, topo) -> bool:
-    return iterations <= 8 and iterations * max(len(topo.blocks), 1) <= _UNROLL_BLOCKS
+    return iterations <= _UNROLL_ITERATIONS and iterations * max(len(topo.blocks), 1) <= _UNROLL_BLOCKS
 
 
 @pytree_dataclass
