@@ -110,7 +110,8 @@ def test_collide_true_above_the_all_pairs_limit_uses_the_grid():
 def test_candidates_skip_joined_pairs_and_list_each_pair_once():
     from jaxcon.core import layout
     from jaxcon.core.system import System
-    from jaxcon.solvers.contact import neighbours, partners_out
+    from jaxcon.core.contact import partners_out
+    from jaxcon.solvers.contact import neighbours
 
     # in a row, each touching the next: 2, 0, 1, 4, with 0-1 joined by a rod; 3 far away
     x = np.array([[0.1, 0.0], [0.2, 0.0], [0.0, 0.0], [5.0, 0.0], [0.3, 0.0]])
