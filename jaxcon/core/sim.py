@@ -11,7 +11,6 @@ from jax import lax
 
 from jaxcon.core import layout as L
 from jaxcon.core.checks import check_int, check_real, check_values, describe_shape
-from jaxcon.core.contact import MAX_ALL_PAIRS_PARTICLES
 from jaxcon.core.model import Model, State, Trajectory, check_model, check_state
 from jaxcon.core.pytree import concrete
 from jaxcon.core.system import Solver, System
@@ -33,17 +32,6 @@ def _check_call(owner, model, state, solver, dt, steps=None):
         raise ValueError(
             f"{owner}: {type(solver).__name__} does not support contacts, and the model has some ({model.contact!r}); "
             "use jc.PGS (sequential impulses) for models with `planes`, `spheres` or `collide`")
-    if model.contact is not None and model.contact.has_grid:
-        if not solver.supports_grid:
-            raise ValueError(
-                f"{owner}: {type(solver).__name__} cannot step a model with a neighbour grid (built with "
-                f"collide='grid', or collide=True above {MAX_ALL_PAIRS_PARTICLES} particles); use jc.PGS or "
-                "jc.Jacobi, or pass `collide` as a list of candidate pairs")
-        if getattr(solver, "substeps", 1) != 1:
-            raise ValueError(
-                f"{owner}: a model with a neighbour grid steps with substeps=1 (its contact slots change from one "
-                f"substep to the next, so their impulses cannot be summed over a step); got "
-                f"{type(solver).__name__}(substeps={solver.substeps}): use a smaller dt instead")
     warn = getattr(solver, "_check_stability", None)
     if warn is not None:
         warn(owner, model, dt)

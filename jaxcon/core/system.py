@@ -93,8 +93,6 @@ class Solver:
     """
 
     supports_contacts = False
-    #: Whether the solver can step a model whose pairs come from the neighbour grid (PGS and Jacobi).
-    supports_grid = False
 
     def _step(self, sys: System, x, v, lam, dt):
         raise NotImplementedError

@@ -1,6 +1,7 @@
 """Solver interface, the shared per-constraint geometry, and the PGS / sequential-impulse solver."""
 from __future__ import annotations
 
+import functools
 from typing import Any, NamedTuple
 
 import jax
@@ -9,6 +10,7 @@ from jax import lax
 
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
+from jaxcon.core.substeps import substepped
 from jaxcon.core.system import System
 from jaxcon.core.topology import Topology
 from jaxcon.solvers import contact
@@ -349,31 +351,45 @@ def shake_sweep(sys: System, fr0: tuple, h, tol=0.0):
 GRID_ATTEMPTS = 2
 
 
-def grid_step(sys, x, v, h, solve):
-    """A (sub)step of a model with a neighbour grid, `solve(found) -> (x, v, (lam, imp))` being the solver's
-    step with the candidate pairs `found` = (partners, overflow) (`contact.neighbours`).
+def grid_substepped(sys, substep, substeps: int, x, v, lam, dt):
+    """A step of a model with a neighbour grid: `substep(x, v, lam_ws, h, found=...) -> (x, v, lam_h)` run
+    `substeps` times (`substepped`) with the candidate pairs `found` = (partners, overflow) of one search made
+    for the whole step (`grid_step`). The contact slots are the same in every substep of a step, so their
+    impulses add up over the step as any other impulse, and the next step's warm start matches them slot by
+    slot as after a single substep."""
+    def solve(found):
+        return substepped(functools.partial(substep, found=found), substeps, x, v, lam, dt)
+    return grid_step(sys, x, v, dt, solve, substeps)
 
-    The search takes the velocities after gravity, but an impact within the step can send a particle into one
-    that was no candidate: three discs in a row, B hitting A at 30 m/s with A 5 cm from C, moved A through C
-    in one step. The candidates cover every pair that can touch on straight paths at those velocities, with
-    a skin of GRID_SKIN (r_i + r_j); so if no particle's displacement in the step differs from its free one,
-    h v_free, by more than GRID_SKIN min(r) from a common offset (the middle of their range: a pile that
-    stops as one keeps it), no other pair can have touched, and the step stands. Otherwise a second search
-    lists the pairs that touch on the straight lines from the start to the end positions
-    (`contact.path_search`); if one was not solved (`contact.unsolved`), the step is solved again from its
-    start with both lists' pairs (`contact.merge_partners`), up to GRID_ATTEMPTS solves, and what the last
-    check still finds is counted in the overflow, with the touching pairs the second search had no slot for.
-    One traced copy of the solve, in a loop of `lax.cond`s (under `vmap` every branch runs: GRID_ATTEMPTS
-    solves per step)."""
+
+def grid_step(sys, x, v, dt, solve, substeps: int = 1):
+    """A step of a model with a neighbour grid, `solve(found) -> (x, v, (lam, imp))` being the solver's
+    step (all its substeps) with the candidate pairs `found` = (partners, overflow) (`contact.neighbours`).
+
+    The search takes the velocities after the step's gravity, but an impact within the step can send a
+    particle into one that was no candidate: three discs in a row, B hitting A at 30 m/s with A 5 cm from C,
+    moved A through C in one step. The candidates cover every pair that can touch on straight paths at those
+    velocities over the whole step, with a skin of GRID_SKIN (r_i + r_j); so if no particle's displacement in
+    the step differs from its free one (dt v plus gravity's share over the `substeps`) by more than
+    GRID_SKIN min(r) from a common offset (the middle of their range: a pile that stops as one keeps it), no
+    other pair can have touched, and the step stands. Otherwise a second search lists the pairs that touch on
+    the straight lines from the start to the end positions (`contact.path_search`); if one was not solved
+    (`contact.unsolved`), the step is solved again from its start with both lists' pairs
+    (`contact.merge_partners`), up to GRID_ATTEMPTS solves, and what the last check still finds is counted in
+    the overflow, with the touching pairs the second search had no slot for. One traced copy of the solve, in a
+    loop of `lax.cond`s (under `vmap` every branch runs: GRID_ATTEMPTS solves per step)."""
     cs = sys.contact
+    h = dt
     v_free = sys.apply_gravity(v, h)
+    # symplectic Euler over S substeps moves a free particle by dt v + dt^2 g (S + 1) / (2 S)
+    free = h * (v_free if substeps == 1 else sys.apply_gravity(v, h * (substeps + 1) / (2 * substeps)))
     r_min = lax.stop_gradient(jnp.min(cs.radius_flat))
     found, scan = contact.grid_search(cs, x, v_free, h)
 
     def run(i, carry):
         partners, over, _, _ = carry
         out = solve((partners, over))
-        dev = lax.stop_gradient(out[0] - x - h * v_free).reshape(x.shape[0], -1)
+        dev = lax.stop_gradient(out[0] - x - free).reshape(x.shape[0], -1)
         dev = dev - (jnp.max(dev, 1, keepdims=True) + jnp.min(dev, 1, keepdims=True)) / 2
         stays = jnp.max(jnp.sum(dev * dev, 0)) <= (contact.GRID_SKIN * r_min) ** 2
 
@@ -411,7 +427,7 @@ def contact_begin(sys, x, v, lam_ws, beta, h, split, warm: bool, factor=1.0, gra
     fr = frames(sys, x)
     slop = None if split is None else split_slop(sys, fr, v, h, beta, split)
     bias = velocity_bias(topo, fr, beta, h, slop)
-    partners, overflow = (None, None) if found is None else found
+    partners = None if found is None else found[0]
     obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h, partners, contact_slop)
     if not warm:
         lam, imp = tuple(jnp.zeros_like(f.C) for f in fr), contact.zero_impulses(topo, cs.ct, x.dtype)
@@ -420,9 +436,14 @@ def contact_begin(sys, x, v, lam_ws, beta, h, split, warm: bool, factor=1.0, gra
             imp_ws = lax.stop_gradient(imp_ws)
         v, lam = warm_start(sys, v, fr, lam_ws, h, factor, gradient)
         v, imp = contact.warm_start(cs, sys.w, v, obs, pairs, imp_ws, factor)
-    if partners is not None:
-        imp = imp._replace(partners=partners, overflow=overflow)
+    imp = with_found(imp, found)
     return v_free, v, fr, bias, obs, pairs, lam, imp, slop
+
+
+def with_found(imp, found):
+    """Contact impulses `imp` carrying a grid step's candidate pairs `found` = (partners, overflow) (None: a
+    model without a grid, unchanged)."""
+    return imp if found is None else imp._replace(partners=found[0], overflow=found[1])
 
 
 def restitution_phases(sys, v_free, obs, pairs, iterations: int, carry, body):

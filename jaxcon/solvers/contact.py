@@ -287,6 +287,17 @@ def unsolved(touching, solved):
     return jnp.sum(new).astype(jnp.int32)
 
 
+def pair_slots(ct: ContactTopology, n: int, partners=None):
+    """The pair contacts' particles: (ia, ja, valid, index). Listed pairs: the static rounds (ct.i, ct.j
+    [R, S]), their `valid` mask, index None. A grid model's `partners` [n, K]: ia each slot's particle, ja its
+    partner (0 for an empty slot), valid the slots in use, index the flat (ia, ja) (`pair_index`)."""
+    if partners is None:
+        return ct.i.array, ct.j.array, ct.valid.array, None
+    ia = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32)[:, None], partners.shape)
+    ja = jnp.maximum(partners, 0)
+    return ia, ja, partners >= 0, (ia.reshape(-1), ja.reshape(-1))
+
+
 def pair_index(ct: ContactTopology, pairs: Rows):
     """The pair rows' particles, flat: (i, j) [P] internal indices (grid rows: empty slots point at 0 and have
     k = 0)."""
@@ -460,16 +471,9 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None, slop=0.0):
     ct, dim = cs.ct, x.shape[0]
     xf, vf, v0f, wf = x.reshape(dim, -1), v.reshape(dim, -1), v0.reshape(dim, -1), w.reshape(-1)
     obs = _obstacle_geometry(cs, x, v, h) if ct.n_obstacles else None
-    pairs, index, valid = None, None, None
-    if ct.n_pairs:
-        ia, ja = ct.i.array, ct.j.array
-        valid = ct.valid.array
-    elif ct.has_grid:
-        ia = jnp.broadcast_to(jnp.arange(xf.shape[1], dtype=jnp.int32)[:, None], partners.shape)
-        ja = jnp.maximum(partners, 0)
-        valid = partners >= 0
-        index = (ia.reshape(-1), ja.reshape(-1))
-    if valid is not None:
+    pairs, index = None, None
+    if ct.n_pairs or ct.has_grid:
+        ia, ja, valid, index = pair_slots(ct, xf.shape[1], partners)
         xi, xj, R = xf[:, ia], xf[:, ja], cs.radius_flat[ia] + cs.radius_flat[ja]
         tol = _tolerance(_magnitude(xi) + _magnitude(xj) + R)
         pairs = _swept(xj - xi, vf[:, ja] - vf[:, ia], R, h, tol)
@@ -618,6 +622,17 @@ def grid_pass(cs: ContactSystem, w, v, pairs: Rows, pn, pt, row=None, extra=None
     return vf.reshape(shape), jnp.moveaxis(pn, 0, -1), jnp.moveaxis(pt, 0, -1)
 
 
+def carry_slots(prev: Impulses, partners):
+    """A grid model's pair impulses `prev` (made with prev.partners) moved to the slots of `partners` [n, K]:
+    (pair_n [n, K], pair_t [dim, n, K]). A slot keeps an impulse only if it lists the same partner again (each
+    pair always sits in the row of its lower-numbered particle, so a pair that stays a candidate stays in the
+    same row); a new pair starts from 0."""
+    same = (partners[:, :, None] == prev.partners[:, None, :]) & (partners >= 0)[:, :, None]
+    pn = jnp.sum(jnp.where(same, prev.pair_n[:, None, :], 0), -1)
+    pt = jnp.sum(jnp.where(same[None], prev.pair_t[:, :, None, :], 0), -1)
+    return pn, pt
+
+
 def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, factor=1.0):
     """Apply last step's contact impulses to contacts that touch or will touch within this step, re-projected
     on the new normals (lam_n >= 0, friction inside the new cone). Returns (v, imp)."""
@@ -638,11 +653,7 @@ def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, 
         v = v + w * jnp.sum(obs.n * on[:, None] + ot, 0)
     pn, pt = prev.pair_n, prev.pair_t
     if pairs is not None and pairs.i is not None:
-        # A slot keeps last step's impulse only if it lists the same partner again (each pair always sits in the
-        # row of its lower-numbered particle, so a pair that stays a candidate stays in the same row).
-        same = (pairs.j[:, :, None] == prev.partners[:, None, :]) & (pairs.j >= 0)[:, :, None]
-        pn = jnp.sum(jnp.where(same, pn[:, None, :], 0), -1)
-        pt = jnp.sum(jnp.where(same[None], pt[:, :, None, :], 0), -1)
+        pn, pt = carry_slots(prev, pairs.j)
     if pairs is not None:
         pn, pt = project(pairs, pn, pt)
         P = pairs.n * pn + pt

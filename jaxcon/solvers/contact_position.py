@@ -72,10 +72,11 @@ def _position_row(disp, n, C, k, mu, ln, lt):
     return n * (new_n - ln) + (new_t - lt), new_n, new_t
 
 
-def project(cs: ContactSystem, w, x, p, imp: Impulses):
-    """One position-level pass over every contact (module docstring): obstacles, then the pair rounds.
-    x: positions at the start of the substep, p: current positions [dim, *view]; imp: position multipliers
-    (kg m) accumulated in this substep. Returns (p, imp)."""
+def project(cs: ContactSystem, w, x, p, imp: Impulses, partners=None):
+    """One position-level pass over every contact (module docstring): obstacles, then the pair rounds (a grid
+    model's `partners` [n, K]: its slots, `_grid_project`). x: positions at the start of the substep, p:
+    current positions [dim, *view]; imp: position multipliers (kg m) accumulated in this substep. Returns
+    (p, imp)."""
     ct, mu = cs.ct, cs.friction
     on, ot = imp.obs_n, imp.obs_t
     if ct.n_obstacles:
@@ -105,7 +106,38 @@ def project(cs: ContactSystem, w, x, p, imp: Impulses):
 
         pf, pn, pt = lax.fori_loop(0, ct.rounds, one_round, (p.reshape(dim, -1), pn, pt))
         p = pf.reshape(shape)
-    return p, Impulses(on, ot, pn, pt)
+    elif ct.has_grid:
+        p, pn, pt = _grid_project(cs, w, x, p, partners, pn, pt)
+    return p, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
+
+
+def _grid_project(cs: ContactSystem, w, x, p, partners, pn, pt):
+    """`project`'s pass over a grid model's pairs, slot by slot as `contact.grid_pass`: the rows of one slot
+    (one per particle, whose partners may repeat) are projected together from the same positions, relaxed by
+    mass splitting (k = 1 / (c_i w_i + c_j w_j), c the slot's rows at each particle that push or overlap), and
+    the slots follow one another in a `lax.scan`; a slot no particle uses is skipped. Returns (p, pair_n
+    [n, K], pair_t [dim, n, K])."""
+    dim, shape = p.shape[0], p.shape
+    wf, xf, r = w.reshape(-1), x.reshape(dim, -1), cs.radius_flat
+
+    def one_slot(pf, xs):
+        j, ln, lt = xs
+
+        def solve(pf):
+            jc = jnp.maximum(j, 0)
+            n, C = contact.overlap_normal(xf[:, jc] - xf, pf[:, jc] - pf, r + r[jc])
+            disp = (pf[:, jc] - xf[:, jc]) - (pf - xf)
+            act = ((j >= 0) & ((C < 0) | (ln > 0))).astype(pf.dtype)
+            c = act + jnp.zeros_like(act).at[jc].add(act)
+            k = L.safe_reciprocal(c * wf + c[jc] * wf[jc]) * act
+            P, new_n, new_t = _position_row(disp, n, C, k, cs.friction, ln, lt)
+            return pf.at[:, jc].add(wf[jc] * P) - wf * P, (new_n, new_t)
+
+        return lax.cond(jnp.any(j >= 0), solve, lambda pf: (pf, (ln, lt)), pf)
+
+    xs = (contact.slot_major(partners), contact.slot_major(pn), contact.slot_major(pt))
+    pf, (pn, pt) = lax.scan(one_slot, p.reshape(dim, -1), xs)
+    return pf.reshape(shape), jnp.moveaxis(pn, 0, -1), jnp.moveaxis(pt, 0, -1)
 
 
 def _target(cs: ContactSystem, vn_before):
@@ -114,10 +146,11 @@ def _target(cs: ContactSystem, vn_before):
     return jnp.maximum(-e * vn_before, 0)
 
 
-def velocity_rows(cs: ContactSystem, w, p, v_before, imp: Impulses):
+def velocity_rows(cs: ContactSystem, w, p, v_before, imp: Impulses, partners=None):
     """Velocity rows (obstacle Rows or None, pair Rows or None) at the end of the position solve: normals and
     gaps at `p`, restitution targets from `v_before` (start of the substep, after gravity), and effective
-    masses only for contacts that pushed in this substep (lam_n > 0; the others get k = 0, no impulse)."""
+    masses only for contacts that pushed in this substep (lam_n > 0; the others get k = 0, no impulse). A grid
+    model's pair rows are its `partners`' slots [n, K]."""
     ct, dim = cs.ct, p.shape[0]
     obs = pairs = None
     if ct.n_obstacles:
@@ -126,21 +159,23 @@ def velocity_rows(cs: ContactSystem, w, p, v_before, imp: Impulses):
         winv = jnp.broadcast_to(w[0], C.shape)
         k = L.safe_reciprocal(winv) * (imp.obs_n > 0).astype(C.dtype)
         obs = Rows(n, _target(cs, jnp.sum(n * v_before[None], 1)), k, winv, jnp.zeros_like(C), C)
-    if ct.n_pairs:
-        ia, ja = ct.i.array, ct.j.array
+    if ct.n_pairs or ct.has_grid:
         pf, vf, wf = p.reshape(dim, -1), v_before.reshape(dim, -1), w.reshape(-1)
+        ia, ja, valid, _ = contact.pair_slots(ct, pf.shape[1], partners)
         dist, n = contact.direction(pf[:, ja] - pf[:, ia])
         C = dist - cs.radius_flat[ia] - cs.radius_flat[ja]
         winv = wf[ia] + wf[ja]
-        k = L.safe_reciprocal(winv) * jnp.asarray(ct.valid.array, winv.dtype) * (imp.pair_n > 0).astype(C.dtype)
+        k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype) * (imp.pair_n > 0).astype(C.dtype)
         vn = jnp.sum(n * (vf[:, ja] - vf[:, ia]), 0)
         pairs = Rows(n, _target(cs, vn), k, winv, jnp.zeros_like(C), C)
+        if partners is not None:
+            pairs = pairs._replace(i=ia, j=partners)
     return obs, pairs
 
 
-def velocity_pass(cs: ContactSystem, w, p, v_before, v, imp: Impulses, h):
+def velocity_pass(cs: ContactSystem, w, p, v_before, v, imp: Impulses, h, partners=None):
     """Restitution and dynamic friction (module docstring) on v = (p - x) / h. `imp` holds the substep's
     position multipliers (kg m). Returns (v, the substep's contact impulses in N s)."""
-    obs, pairs = velocity_rows(cs, w, p, v_before, imp)
-    start = Impulses(*(a / h for a in imp[:4]))
+    obs, pairs = velocity_rows(cs, w, p, v_before, imp, partners)
+    start = imp._replace(**{f: getattr(imp, f) / h for f in ("obs_n", "obs_t", "pair_n", "pair_t")})
     return contact.sweep(cs, w, v, obs, pairs, start)

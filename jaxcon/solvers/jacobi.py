@@ -22,7 +22,7 @@ from jaxcon.solvers.common import (
     contact_end,
     frames,
     gamma,
-    grid_step,
+    grid_substepped,
     restitution_phases,
     row_solve,
     split_position_pass,
@@ -96,11 +96,13 @@ class Jacobi(Solver):
             check_scalar("Jacobi", "relaxation", self.relaxation, 0.0, 2.0, positive=True)
 
     supports_contacts = True
-    supports_grid = True
 
     def _step(self, sys, x, v, lam, dt):
         if sys.contact is not None:
-            return substepped(functools.partial(self._substep_contacts, sys), self.substeps, x, v, lam, dt)
+            substep = functools.partial(self._substep_contacts, sys)
+            if sys.contact.ct.has_grid:
+                return grid_substepped(sys, substep, self.substeps, x, v, lam, dt)
+            return substepped(substep, self.substeps, x, v, lam, dt)
         topo = sys.topology
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
@@ -144,9 +146,7 @@ class Jacobi(Solver):
         """One (sub)step of a model with contacts (jaxcon.solvers.contact_jacobi): PGS's contact rows, warm start,
         time-of-impact correction and position safety pass, with rods and contacts solved in the same Jacobi
         iterations. `relaxation=None` relaxes by mass splitting (per-particle counts of the rows that push).
-        A grid model's step goes through `grid_step`, which calls this with its candidate pairs `found`."""
-        if sys.contact.ct.has_grid and found is None:
-            return grid_step(sys, x, v, h, functools.partial(self._substep_contacts, sys, x, v, lam_ws, h))
+        A grid model's step goes through `grid_substepped`, which calls this with its candidate pairs `found`."""
         topo = sys.topology
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)

@@ -16,6 +16,7 @@ from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact, contact_position
+from jaxcon.solvers.common import grid_substepped, with_found
 
 #: The spring tension is clipped to +- STRETCH_CLIP * stiffness * rest_length (constraints with rest length
 #: > 0). A stable run never comes near it (it is a 1000% stretch, ten times `jc.diagnose`'s violation limit);
@@ -125,20 +126,27 @@ class Penalty(Solver):
         the contacts' damping ratio zeta (from `restitution` and `damping`), the stability limit of symplectic
         Euler for a damped oscillator."""
         t, ct = model.topology, model.contact
-        pairs = np.asarray(ct.pairs.array).reshape(-1, 2)
         kiss = 6 if t.dim == 2 else 12
-        touch = np.minimum(np.bincount(pairs.reshape(-1), minlength=t.n), kiss) + min(ct.n_obstacles, t.dim)
-        deg = deg + touch
-        i = np.concatenate([t.i, pairs[:, 0], np.arange(t.n)])
-        j = np.concatenate([t.j, pairs[:, 1], np.arange(t.n)])
-        wj = np.concatenate([w[t.j], w[pairs[:, 1]], np.zeros(t.n if ct.n_obstacles else 0)])
-        i, j = i[: len(wj)], j[: len(wj)]
-        bound = float(np.max(w[i] * deg[i] + wj * deg[j], initial=0.0))
+        if ct.has_grid:             # any two particles may touch: each has up to `kiss` contacts
+            touch = np.full(t.n, kiss if t.n > 1 else 0) + min(ct.n_obstacles, t.dim)
+            deg = deg + touch
+            top = float(np.max(w * deg, initial=0.0))
+            bound = max(float(np.max(w[t.i] * deg[t.i] + w[t.j] * deg[t.j], initial=0.0)), 2 * top)
+            w_pair = np.array([2 * float(np.max(w, initial=0.0))])
+        else:
+            pairs = np.asarray(ct.pairs.array).reshape(-1, 2)
+            touch = np.minimum(np.bincount(pairs.reshape(-1), minlength=t.n), kiss) + min(ct.n_obstacles, t.dim)
+            deg = deg + touch
+            i = np.concatenate([t.i, pairs[:, 0], np.arange(t.n)])
+            j = np.concatenate([t.j, pairs[:, 1], np.arange(t.n)])
+            wj = np.concatenate([w[t.j], w[pairs[:, 1]], np.zeros(t.n if ct.n_obstacles else 0)])
+            i, j = i[: len(wj)], j[: len(wj)]
+            bound = float(np.max(w[i] * deg[i] + wj * deg[j], initial=0.0))
+            w_pair = np.concatenate([w[pairs[:, 0]] + w[pairs[:, 1]], w if ct.n_obstacles else np.zeros(0)])
         k = float(self.stiffness)
         omega = np.sqrt(k * bound)
         if omega <= 0:
             return float("inf")
-        w_pair = np.concatenate([w[pairs[:, 0]] + w[pairs[:, 1]], w if ct.n_obstacles else np.zeros(0)])
         e = float(np.asarray(model.restitution))
         zeta = _damping_ratio_now(e)
         zeta += float(self.damping) * float(np.sqrt(np.max(w_pair, initial=0.0) / k)) / 2
@@ -218,17 +226,25 @@ class Penalty(Solver):
         if sys.contact is None:
             return substepped(substep, self.substeps, x, v, lam, dt)
 
-        def with_contacts(x, v, ws, h):
-            x = _start_overlaps(sys.contact, sys.w, x, v, ws[1], h, k, c)
+        def with_contacts(x, v, ws, h, found=None):
+            # a grid model's step (`grid_substepped`) hands every substep the step's candidate pairs `found`
+            partners, prev = None, ws[1]
+            if found is not None:
+                partners = found[0]
+                pn, pt = contact.carry_slots(prev, partners)
+                prev = prev._replace(pair_n=pn, pair_t=pt)
+            x = _start_overlaps(sys.contact, sys.w, x, v, prev, h, k, c, partners)
             if topo.blocks:
                 x1, v1, imp_b = substep(x, v, ws[0], h)
             else:                    # contacts only: no springs
                 v1 = sys.apply_gravity(v, h)
                 x1, imp_b = x + h * v1, ()
             dv, imp_c = _contact_impulses(sys.topology, sys.contact, sys.w, x, v, v1, h, k, c,
-                                          jnp.asarray(self.slip_velocity, dtype))
-            return x1 + h * dv, v1 + dv, (imp_b, imp_c)
+                                          jnp.asarray(self.slip_velocity, dtype), partners)
+            return x1 + h * dv, v1 + dv, (imp_b, with_found(imp_c, found))
 
+        if sys.contact.ct.has_grid:
+            return grid_substepped(sys, with_contacts, self.substeps, x, v, lam, dt)
         return substepped(with_contacts, self.substeps, x, v, lam, dt)
 
 
@@ -312,14 +328,15 @@ def _excess(C, vn, m, prev_n, h, k, c, two_zeta, tol):
     return jnp.where((prev_n <= 0) & (m > 0), jnp.maximum(-C - legit, 0), 0)
 
 
-def _start_overlaps(cs, w, x, v, prev, h, k, c):
+def _start_overlaps(cs, w, x, v, prev, h, k, c, partners=None):
     """Positions x [dim, *view] with every start overlap moved out at position level, along its contact's
     normal (`contact.direction`: upwards from a sphere's exact centre or between coincident particles), with no
     change of velocity. A start overlap is an overlap that no spring can have stored: the contact did not push
     in the previous substep (the impulses `prev`), yet it is deeper than one substep's approach (`_excess`): a
     particle that starts inside an obstacle or another particle. Its spring would store (k / 2) depth^2 and fling
     the particle out (a 1 kg particle started 0.3 R off a 1 m sphere's centre left at 100 m/s); moved out, it
-    leaves with the velocity it had. Pairs are moved apart in inverse proportion to their masses."""
+    leaves with the velocity it had. Pairs are moved apart in inverse proportion to their masses (a grid
+    model's: its `partners` [n, K], with `prev` in their slots)."""
     ct, dim = cs.ct, x.shape[0]
     two_zeta = 2 * _restitution_damping_ratio(cs.restitution)
     r = cs.radius[0]
@@ -331,22 +348,22 @@ def _start_overlaps(cs, w, x, v, prev, h, k, c):
             tol = contact._tolerance(size + jnp.sum(jnp.abs(cs.plane_normal[q] if q < ct.n_planes else
                                                               cs.sphere_centre[q - ct.n_planes])))
             x = x + n * _excess(C, jnp.sum(n * v, 0), m, prev.obs_n[q], h, k, c, two_zeta, tol)
-    if ct.n_pairs:
-        ia, ja = ct.i.array, ct.j.array
+    if ct.n_pairs or ct.has_grid:
         xf, vf, wf, rf = x.reshape(dim, -1), v.reshape(dim, -1), w.reshape(-1), cs.radius_flat
+        ia, ja, valid, index = contact.pair_slots(ct, xf.shape[1], partners)
         dist, n = contact.direction(xf[:, ja] - xf[:, ia])
-        m = L.safe_reciprocal(wf[ia] + wf[ja]) * jnp.asarray(ct.valid.array, x.dtype)
+        m = L.safe_reciprocal(wf[ia] + wf[ja]) * jnp.asarray(valid, x.dtype)
         tol = contact._tolerance(jnp.sum(jnp.abs(xf[:, ia]) + jnp.abs(xf[:, ja]), 0) + rf[ia] + rf[ja])
         vn = jnp.sum(n * (vf[:, ja] - vf[:, ia]), 0)
         e = _excess(dist - rf[ia] - rf[ja], vn, m, prev.pair_n, h, k, c, two_zeta, tol)
-        x = x + contact._pair_total(ct, w, n * (e * m), -1.0).reshape(x.shape)
+        x = x + contact._pair_total(ct, w, n * (e * m), -1.0, index).reshape(x.shape)
     return x
 
 
-def _contact_impulses(topo, cs, w, x, v0, v, h, k, c, slip):
+def _contact_impulses(topo, cs, w, x, v0, v, h, k, c, slip, partners=None):
     """Penalty contact impulses of one substep (Penalty's docstring): (velocity change [dim, *view], the
     substep's contact `Impulses`). x, v0: positions and velocities at the start of the substep, v: velocities
-    after gravity and the springs."""
+    after gravity and the springs; `partners` [n, K]: a grid model's candidate pairs."""
     ct, mu, dim = cs.ct, cs.friction, x.shape[0]
     two_zeta = 2 * _restitution_damping_ratio(cs.restitution)
     on = ot = pn = pt = None
@@ -360,14 +377,14 @@ def _contact_impulses(topo, cs, w, x, v0, v, h, k, c, slip):
             dv = dv + w * (n * p_n + p_t)
             rows.append((p_n, p_t))
         on, ot = (jnp.stack(a) for a in zip(*rows))
-    if ct.n_pairs:
-        ia, ja = ct.i.array, ct.j.array
+    if ct.n_pairs or ct.has_grid:
         xf, vf, v0f, wf = x.reshape(dim, -1), v.reshape(dim, -1), v0.reshape(dim, -1), w.reshape(-1)
+        ia, ja, valid, index = contact.pair_slots(ct, xf.shape[1], partners)
         dist, n = contact.direction(xf[:, ja] - xf[:, ia])
         C = dist - cs.radius_flat[ia] - cs.radius_flat[ja]
-        m = L.safe_reciprocal(wf[ia] + wf[ja]) * jnp.asarray(ct.valid.array, x.dtype)
+        m = L.safe_reciprocal(wf[ia] + wf[ja]) * jnp.asarray(valid, x.dtype)
         pn, pt = _penalty_row(v0f[:, ja] - v0f[:, ia], vf[:, ja] - vf[:, ia], n, C, m, k, c, two_zeta, mu, slip, h)
-        dv = dv + contact._pair_total(ct, w, n * pn + pt, sign_i=-1.0).reshape(v.shape)
+        dv = dv + contact._pair_total(ct, w, n * pn + pt, -1.0, index).reshape(v.shape)
     zero = contact.zero_impulses(topo, ct, x.dtype)
     return dv, contact.Impulses(zero.obs_n if on is None else on, zero.obs_t if ot is None else ot,
                                 zero.pair_n if pn is None else pn, zero.pair_t if pt is None else pt)

@@ -23,7 +23,7 @@ from jaxcon.solvers.common import (
     contact_end,
     frames,
     gamma,
-    grid_step,
+    grid_substepped,
     restitution_phases,
     row_solve,
     split_position_pass,
@@ -119,7 +119,6 @@ class PGS(Solver):
         check_scalar("PGS", "contact_slop", self.contact_slop, 0.0, 0.5)
 
     supports_contacts = True
-    supports_grid = True
 
     def _factor(self, dtype):
         factor = self.warm_start_factor
@@ -164,12 +163,10 @@ class PGS(Solver):
     def _substep_contacts(self, sys, x, v, lam_ws, h, found=None):
         """The same step with contacts (jaxcon.solvers.contact): each sweep solves the constraint colours, then
         the contacts; positions get the time-of-impact correction. Contacts push out overlap with `beta`. A grid
-        model's step goes through `grid_step`, which calls this with its candidate pairs `found`."""
+        model's step goes through `grid_substepped`, which calls this with its candidate pairs `found`."""
         if self.implicit:
             raise ValueError("PGS(implicit=True) does not support contacts (an inequality); use implicit=False")
         topo, cs = sys.topology, sys.contact
-        if cs.ct.has_grid and found is None:
-            return grid_step(sys, x, v, h, functools.partial(self._substep_contacts, sys, x, v, lam_ws, h))
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
         contact_slop = jnp.asarray(self.contact_slop, dtype)
@@ -251,6 +248,8 @@ class PGS(Solver):
         return x + h * v, v, lam
 
     def _step(self, sys, x, v, lam, dt):
+        if sys.contact is not None and sys.contact.ct.has_grid:
+            return grid_substepped(sys, functools.partial(self._substep_contacts, sys), self.substeps, x, v, lam, dt)
         return substepped(functools.partial(self._substep, sys), self.substeps, x, v, lam, dt)
 
 

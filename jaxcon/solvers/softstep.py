@@ -15,7 +15,8 @@ from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact, contact_soft
-from jaxcon.solvers.common import apply_impulses, clamp_ropes, frames, gamma, row_solve, warm_rows
+from jaxcon.solvers.common import (apply_impulses, clamp_ropes, frames, gamma, grid_substepped, row_solve, warm_rows,
+                                   with_found)
 
 
 def soft_coefficients(hertz, damping_ratio, h):
@@ -124,7 +125,10 @@ class SoftStep(Solver):
 
     def _step(self, sys, x, v, lam, dt):
         if sys.contact is not None:
-            return substepped(functools.partial(self._substep_contacts, sys), self.substeps, x, v, lam, dt)
+            substep = functools.partial(self._substep_contacts, sys)
+            if sys.contact.ct.has_grid:
+                return grid_substepped(sys, substep, self.substeps, x, v, lam, dt)
+            return substepped(substep, self.substeps, x, v, lam, dt)
         dtype = x.dtype
         hertz = jnp.asarray(self.hertz, dtype)
         zeta = jnp.asarray(self.damping_ratio, dtype)
@@ -151,10 +155,11 @@ class SoftStep(Solver):
 
         return substepped(substep, self.substeps, x, v, lam, dt)
 
-    def _substep_contacts(self, sys, x, v, lam, h):
+    def _substep_contacts(self, sys, x, v, lam, h, found=None):
         """One substep of a model with contacts (jaxcon.solvers.contact_soft): the rods' solve sweep, then the
         contacts' (soft push-out of overlap, no restitution); positions with the time-of-impact correction; relax
-        sweeps over rods and contacts without bias, restitution in the contacts' relax targets."""
+        sweeps over rods and contacts without bias, restitution in the contacts' relax targets. A grid model's
+        step goes through `grid_substepped`, which calls this with its candidate pairs `found`."""
         dtype = x.dtype
         topo, cs, w = sys.topology, sys.contact, sys.w
         lam, imp = lam
@@ -169,8 +174,9 @@ class SoftStep(Solver):
         lam = tuple(clamp_ropes(blk, warm_rows(f, l, h)) * (f.k > 0).astype(l.dtype)
                     for blk, f, l in zip(topo.blocks, fr, lam))
         v = apply_impulses(sys, v, fr, lam)
-        obs, pairs = contact.rows(cs, w, x, v0, v_free, jnp.zeros((), dtype), h)
+        obs, pairs = contact.rows(cs, w, x, v0, v_free, jnp.zeros((), dtype), h, None if found is None else found[0])
         v, imp = contact.warm_start(cs, w, v, obs, pairs, imp)
+        imp = with_found(imp, found)
         s_obs, obs_soft = contact_soft.solve_rows(obs, soft_coefficients(2 * hz, zeta, h), push)   # static bodies
         s_pairs, pair_soft = contact_soft.solve_rows(pairs, soft_coefficients(hz, zeta, h), push)
         inv_h = 1 / h

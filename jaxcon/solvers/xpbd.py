@@ -11,7 +11,8 @@ from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact, contact_position
-from jaxcon.solvers.common import position_sweep
+from jaxcon.core.substeps import substepped
+from jaxcon.solvers.common import grid_substepped, position_sweep, with_found
 
 
 @pytree_dataclass
@@ -67,7 +68,7 @@ class XPBD(Solver):
 
     def _step(self, sys, x, v, lam, dt):
         if sys.contact is not None:
-            return self._step_contacts(sys, x, v, dt)
+            return self._step_contacts(sys, x, v, lam, dt)
         topo = sys.topology
         dtype = x.dtype
         h = dt / self.substeps
@@ -91,32 +92,32 @@ class XPBD(Solver):
         x, v, _, total = lax.fori_loop(0, self.substeps, substep, (x, v, predict(x, v), zero))
         return x, v, total
 
-    def _step_contacts(self, sys, x, v, dt):
+    def _step_contacts(self, sys, x, v, lam, dt):
         """The step of a model with contacts (jaxcon.solvers.contact_position): each iteration projects the
         colours, then the contacts; after v = (p - x) / h, one velocity pass of restitution and dynamic
-        friction. Returns lam as (block impulses, contact `Impulses`), both summed over the substeps."""
+        friction. Returns lam as (block impulses, contact `Impulses`), both summed over the substeps. A grid
+        model's substeps share one search for the whole step (`grid_substepped`)."""
         topo, cs = sys.topology, sys.contact
         dtype = x.dtype
-        h = dt / self.substeps
-        sweep_colours = position_sweep(sys, sys.rest, jnp.asarray(self.compliance, dtype) / (h * h),
-                                       set_alpha=lambda a: a / (h * h))
-        zero_b = tuple(jnp.zeros(b.shape, dtype) for b in topo.blocks)
-        zero_c = contact.zero_impulses(topo, cs.ct, dtype)
+        compliance = jnp.asarray(self.compliance, dtype)
 
-        def substep(_, carry):
-            x, v, total_b, total_c = carry
+        def substep(x, v, _, h, found=None):
+            partners = None if found is None else found[0]
+            sweep_colours = position_sweep(sys, sys.rest, compliance / (h * h), set_alpha=lambda a: a / (h * h))
+            zero_b = tuple(jnp.zeros(b.shape, dtype) for b in topo.blocks)
+            zero_c = contact.zero_impulses(topo, cs.ct, dtype)
             v_before = sys.apply_gravity(v, h)
 
             def sweep(i, c):
                 p, mu, imp = c
                 p, mu = sweep_colours(i, (p, mu))
-                p, imp = contact_position.project(cs, sys.w, x, p, imp)
+                p, imp = contact_position.project(cs, sys.w, x, p, imp, partners)
                 return p, mu, imp
 
             p, mu, imp = lax.fori_loop(0, self.iterations, sweep, (x + h * v_before, zero_b, zero_c))
-            v, imp = contact_position.velocity_pass(cs, sys.w, p, v_before, (p - x) / h, imp, h)
-            return (p, v, tuple(t + m / h for t, m in zip(total_b, mu)),
-                    contact.Impulses(*(t + a for t, a in zip(total_c[:4], imp[:4]))))
+            v, imp = contact_position.velocity_pass(cs, sys.w, p, v_before, (p - x) / h, imp, h, partners)
+            return p, v, (tuple(m / h for m in mu), with_found(imp, found))
 
-        x, v, total_b, total_c = lax.fori_loop(0, self.substeps, substep, (x, v, zero_b, zero_c))
-        return x, v, (total_b, total_c)
+        if cs.ct.has_grid:
+            return grid_substepped(sys, substep, self.substeps, x, v, lam, dt)
+        return substepped(substep, self.substeps, x, v, lam, dt)
