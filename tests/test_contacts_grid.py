@@ -125,7 +125,7 @@ def test_candidates_skip_joined_pairs_and_list_each_pair_once():
     assert got == {(0, 2), (1, 4)} and int(overflow) == 0
 
 
-def test_bad_max_neighbours_and_refusing_solvers():
+def test_bad_max_neighbours_and_solvers_without_contacts():
     x = _discs(2, 2)
     for bad in (0, -3, 2.5, True, "8"):
         with pytest.raises(ValueError, match="max_neighbours"):
@@ -135,25 +135,33 @@ def test_bad_max_neighbours_and_refusing_solvers():
     with pytest.raises(ValueError, match="collide"):
         jc.build(x, np.ones(4), radius=R, collide="grids")
     model, state = jc.build(x, np.ones(4), radius=R, collide="grid", planes=BOX)
-    for solver in (jc.XPBD(), jc.SoftStep(), jc.Penalty()):
-        with pytest.raises(ValueError, match="neighbour grid"):
+    for solver in (jc.Direct(), jc.RATTLE()):            # no contacts at all, grid or not
+        with pytest.raises(ValueError, match="does not support contacts"):
             jc.rollout(model, state, solver, 0.01, 2)
-    with pytest.raises(ValueError, match="substeps"):
-        jc.rollout(model, state, jc.PGS(substeps=2), 0.01, 2)
 
 
-def test_gradient_through_a_grid_rollout_is_finite():
+@pytest.mark.parametrize("solver", [jc.PGS(4, substeps=2), jc.XPBD(2, substeps=4)], ids=["PGS", "XPBD"])
+def test_grid_gradients_equal_central_differences(solver):
+    """d(final positions)/d(start velocity, radius) through a grid rollout with substeps (disc 0 hits the three
+    others, which hit each other; friction and restitution), against float64 central differences."""
     x = _discs(2, 2, gap=0.01)
 
     def loss(v0, radius):
         model, state = jc.build(x, np.ones(4), velocities=jnp.zeros((4, 2)).at[0].set(v0), gravity=0.0,
                                 radius=radius, collide="grid", restitution=0.5, friction=0.2)
-        final, _ = jc.rollout(model, state, jc.PGS(4), 0.01, 20)
-        return jnp.sum(final.x[:, 0] * jnp.arange(4.0))
+        final, traj = jc.rollout(model, state, solver, 0.01, 20)
+        return jnp.sum(final.x[:, 0] * jnp.arange(4.0) + final.x[:, 1]), jnp.max(traj.contact_overflow)
 
-    g = jax.grad(loss, argnums=(0, 1))(jnp.array([1.5, 0.8]), R)
-    assert all(np.all(np.isfinite(np.asarray(a))) for a in g)
-    assert float(jnp.abs(g[0]).max()) > 0
+    p = (jnp.array([1.5, 0.8]), jnp.asarray(R))
+    (_, overflow), g = jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)(*p)
+    assert int(overflow) == 0
+    f = jax.jit(lambda v0, r: loss(v0, r)[0])
+    eps = 1e-6
+    fd_v = [(f(p[0].at[a].add(eps), p[1]) - f(p[0].at[a].add(-eps), p[1])) / (2 * eps) for a in range(2)]
+    fd_r = (f(p[0], p[1] + eps) - f(p[0], p[1] - eps)) / (2 * eps)
+    np.testing.assert_allclose(np.asarray(g[0]), np.asarray(fd_v), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(float(g[1]), float(fd_r), rtol=1e-5, atol=1e-7)
+    assert float(jnp.abs(g[0]).max()) > 0.1
 
 
 def test_record_memory_counts_every_recorded_array(monkeypatch):
