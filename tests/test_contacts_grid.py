@@ -153,9 +153,10 @@ def test_grid_gradients_equal_central_differences(solver):
         return jnp.sum(final.x[:, 0] * jnp.arange(4.0) + final.x[:, 1]), jnp.max(traj.contact_overflow)
 
     p = (jnp.array([1.5, 0.8]), jnp.asarray(R))
-    (_, overflow), g = jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)(*p)
+    value_and_grad = jax.jit(jax.value_and_grad(loss, argnums=(0, 1), has_aux=True))
+    (_, overflow), g = value_and_grad(*p)
     assert int(overflow) == 0
-    f = jax.jit(lambda v0, r: loss(v0, r)[0])
+    f = lambda v0, r: value_and_grad(v0, r)[0][0]        # noqa: E731  (the same program: one compilation)
     eps = 1e-6
     fd_v = [(f(p[0].at[a].add(eps), p[1]) - f(p[0].at[a].add(-eps), p[1])) / (2 * eps) for a in range(2)]
     fd_r = (f(p[0], p[1] + eps) - f(p[0], p[1] - eps)) / (2 * eps)

@@ -1,5 +1,6 @@
 """The neighbour grid with every contact solver: substeps, 3-D, pair friction against SciPy, jc.fit and
-jc.batched_rollout (issue 25, part 3). Its gradients against central differences are in test_contacts_grid.py."""
+jc.batched_rollout (issue 25, part 3). Its gradients against central differences are in test_contacts_grid.py.
+Some variants are in the extended set (tests/conftest.py SLOW: `python -m pytest -m slow`)."""
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -124,30 +125,34 @@ def test_grid_pair_friction_holds_and_slides_as_scipy(name):
     assert max(gap_held, gap_moved) < 0.005 * R
 
 
-def test_fit_and_batched_rollout_step_the_grid():
-    """jc.fit recovers the restitution of grid pairs (two discs colliding, then one against a wall), and
-    jc.batched_rollout of a grid model equals one rollout per state, with substeps."""
+def _three_discs(e):
+    """Three discs in a row without gravity, the first moving into the second (slightly off-centre), which
+    moves into the third, which moves to a wall."""
+    x = np.array([[0.1, 0.2], [0.3, 0.21], [0.45, 0.2]])
+    return jc.build(x, np.ones(3), velocities=np.array([[2.0, 0.0], [0.0, 0.0], [0.0, 0.0]]), gravity=0.0,
+                    radius=R, collide="grid", planes=[([-1.0, 0.0], -0.6)], restitution=e, friction=0.2,
+                    restitution_threshold=0.05)
+
+
+def test_fit_recovers_the_restitution_of_grid_pairs():
     solver = jc.PGS(10, substeps=2)
-
-    def make(e):
-        x = np.array([[0.1, 0.2], [0.3, 0.21], [0.45, 0.2]])
-        return jc.build(x, np.ones(3), velocities=np.array([[2.0, 0.0], [0.0, 0.0], [0.0, 0.0]]), gravity=0.0,
-                        radius=R, collide="grid", planes=[([-1.0, 0.0], -0.6)], restitution=e, friction=0.2,
-                        restitution_threshold=0.05)
-
-    truth, state = make(0.8)
+    truth, state = _three_discs(0.8)
     _, traj = jc.rollout(truth, state, solver, 1 / 120, 20)
     assert int(jnp.max(traj.contact_overflow)) == 0
     assert float(jnp.max(jnp.abs(traj.x[-1, 2] - state.x[2]))) > 0.02      # the collisions happened
-    guess, _ = make(0.65)
-    r = jc.fit(guess, state, solver, 1 / 120, traj.x, params=("restitution",), progress=False,
-               patience=5)
+    guess, _ = _three_discs(0.65)
+    r = jc.fit(guess, state, solver, 1 / 120, traj.x, params=("restitution",), progress=False, patience=5)
     assert r.converged and abs(float(r.params["restitution"]) - 0.8) < 1e-4
 
+
+def test_batched_rollout_of_a_grid_model_equals_one_rollout_per_state():
+    solver = jc.PGS(10, substeps=2)
+    model, state = _three_discs(0.8)
     v0 = np.random.default_rng(0).normal(0, 1, (4, 3, 2))
     states = jax.vmap(lambda v: state.replace(v=v))(jnp.asarray(v0))
-    fb, tb = jc.batched_rollout(truth, states, solver, 1 / 120, 20)
+    fb, tb = jc.batched_rollout(model, states, solver, 1 / 120, 20)
     for b in (0, 3):
-        one, t1 = jc.rollout(truth, jax.tree.map(lambda a: a[b], states), solver, 1 / 120, 20)
+        one, t1 = jc.rollout(model, jax.tree.map(lambda a: a[b], states), solver, 1 / 120, 20)
         assert float(jnp.max(jnp.abs(fb.x[b] - one.x))) < 1e-12
         assert np.array_equal(np.asarray(tb.contact_partners[b]), np.asarray(t1.contact_partners))
+    assert float(jnp.max(jnp.abs(fb.x[:, :, 0] - states.x[:, :, 0]))) > 0.01

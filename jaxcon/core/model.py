@@ -393,7 +393,7 @@ def build(
       radius: particle radius (m), a scalar or [n]; default 0 (points). Particles in `collide` pairs need > 0.
       collide: True (every pair of particles no rod or rope joins), or a list of candidate (i, j) pairs, or
         "grid". True solves all pairs up to 256 particles and uses a neighbour grid above; "grid" always uses
-        the grid (docs/contacts.md). Grid models step with PGS or Jacobi (substeps=1).
+        the grid (docs/contacts.md); every contact solver steps a grid model, with substeps.
       max_neighbours: the grid's capacity, partners kept per particle (static int >= 1; default 8 in 2-D,
         16 in 3-D). Candidates beyond it are counted in `Trajectory.contact_overflow` and `jc.diagnose`.
       planes: [(normal, offset), ...]: particles stay in normal . x >= offset + radius (normal normalised).
