@@ -118,6 +118,13 @@ SLOW = {
     "tests/test_contacts_grid_solvers.py::test_a_3d_pile_rests_on_the_grid_with_substeps",
     # jc.fit through a grid: its gradient is test_contacts_grid.py::test_grid_gradients_equal_central_differences
     "tests/test_contacts_grid_solvers.py::test_fit_recovers_the_restitution_of_grid_pairs",
+    # XPBD's grid gradient: PGS's stays (the same grid step and search), and XPBD's grid rows are exercised by
+    # test_contacts_grid_solvers.py's pile and friction tests
+    "tests/test_contacts_grid.py::test_grid_gradients_equal_central_differences[XPBD]",
+    # the all-pairs baseline of the grid's landing pile: all-pairs piles are tests/test_contacts_piles.py's
+    "tests/test_contacts_grid.py::test_pile_settles_without_overlap[True]",
+    # Jacobi's energy on the grid: PGS's stays; Jacobi's grid rows: the pair-friction test against SciPy
+    "tests/test_contacts_grid.py::test_energy_never_increases_without_gravity[solver1]",
 }
 
 
