@@ -86,6 +86,9 @@ def test_overflow_is_reported():
     # with save_every, a record holds the overflow of every step since the previous one
     _, every2 = jc.rollout(model, state, jc.PGS(2), 1 / 60, 2, save_every=2)
     assert int(every2.contact_overflow[0]) == int(jnp.sum(traj.contact_overflow))
+    # with substeps, the step's one search is counted once (not once per substep)
+    _, sub = jc.rollout(model, state, jc.PGS(2, substeps=3), 1 / 60, 1)
+    assert int(sub.contact_overflow[0]) == int(traj.contact_overflow[0])
 
 
 def test_collide_true_above_the_all_pairs_limit_uses_the_grid():
@@ -217,6 +220,21 @@ def test_an_impact_cannot_send_a_disc_through_one_that_was_no_candidate(dim):
     # the same outcome as all pairs: B -9 m/s, A and C at 18 and 21 m/s (the slot-by-slot solve ends 0.03 off)
     np.testing.assert_allclose(np.asarray(grid.v), np.asarray(pairs.v), atol=0.05)
     np.testing.assert_allclose(np.asarray(grid.x), np.asarray(pairs.x), atol=2e-3)
+
+
+def test_a_disc_that_passes_one_and_comes_back_within_a_step_is_caught():
+    """With substeps the path bends at every substep. B (30 m/s) hits A, A is no candidate of C (5 cm beyond
+    it), and with 8 substeps A passed through C, bounced off a wall and came back to where it started within
+    one step: C never moved, and A's straight path from start to end missed C. The path check now widens each
+    particle's straight path by its largest departure from its free path over the substeps."""
+    x, v = _row([0.0, 0.2, 0.35], [30.0, 0.0, 0.0], 2)
+    model, state = jc.build(x, np.ones(3), velocities=v, gravity=0.0, radius=R, collide="grid",
+                            planes=[([-1.0, 0.0], -0.45)], restitution=1.0, restitution_threshold=0.0)
+    _, traj = jc.rollout(model, state, jc.PGS(10, substeps=8), 1 / 60, 2)
+    xs, vs = np.asarray(traj.x[:, :, 0]), np.asarray(traj.v[:, :, 0])
+    assert abs(vs[0, 2]) > 1.0                        # C was hit in the first step (before: it stayed at rest)
+    assert np.all(np.diff(xs, axis=1) >= 2 * R - 1e-3)          # B, A, C keep their order, none inside another
+    assert int(jnp.max(traj.contact_overflow)) == 0
 
 
 def test_a_pair_the_second_solve_still_misses_is_counted():

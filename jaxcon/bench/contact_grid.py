@@ -3,9 +3,10 @@
     python -m jaxcon bench --contact-grid [n ...]
 
 A square lattice of n discs (radius 1 cm, 1 mm apart) on a floor, under gravity, stepped with PGS(10) at
-dt = 1/60 s. Prints the wall time per step of a compiled rollout (compile excluded, best of 3 runs). The
-all-pairs column passes every pair as an explicit list (`all_pairs(n)`): `collide=True` would switch to the
-grid above `MAX_ALL_PAIRS_PARTICLES` particles, and the column would then time the grid.
+dt = 1/60 s. Prints the wall time per step of a compiled rollout (compile excluded, best of 3 runs), and the
+grid's first call (compile included). The all-pairs column passes every pair as an explicit list
+(`all_pairs(n)`): `collide=True` would switch to the grid above `MAX_ALL_PAIRS_PARTICLES` particles, and the
+column would then time the grid. It is left out above `ALL_PAIRS_MAX` particles.
 """
 from __future__ import annotations
 
@@ -67,3 +68,7 @@ def main(sizes=(256, 1024, 2048)):
         a = f"{1e3 * per_step(n, 'all', steps)[1]:20.2f}" if n <= ALL_PAIRS_MAX else f"{'-':>20}"
         first, g = per_step(n, "grid", steps)
         print(f"{n:7d} {a} {1e3 * g:15.2f} {first:20.1f} {steps:6d}", flush=True)
+
+
+if __name__ == "__main__":
+    main(tuple(int(a) for a in sys.argv[1:]) or (256, 1024, 2048))

@@ -357,44 +357,59 @@ def grid_substepped(sys, substep, substeps: int, x, v, lam, dt):
     for the whole step (`grid_step`). The contact slots are the same in every substep of a step, so their
     impulses add up over the step as any other impulse, and the next step's warm start matches them slot by
     slot as after a single substep."""
-    def solve(found):
-        return substepped(functools.partial(substep, found=found), substeps, x, v, lam, dt)
+    def solve(found, watch):
+        return substepped(functools.partial(substep, found=found), substeps, x, v, lam, dt, watch)
     return grid_step(sys, x, v, dt, solve, substeps)
 
 
 def grid_step(sys, x, v, dt, solve, substeps: int = 1):
-    """A step of a model with a neighbour grid, `solve(found) -> (x, v, (lam, imp))` being the solver's
-    step (all its substeps) with the candidate pairs `found` = (partners, overflow) (`contact.neighbours`).
+    """A step of a model with a neighbour grid, `solve(found, watch) -> (x, v, (lam, imp), worst)` being the
+    solver's step (all its substeps, `substepped`) with the candidate pairs `found` = (partners, overflow)
+    (`contact.neighbours`), and `worst` the maximum of `watch(k, x_k)` over its substeps.
 
     The search takes the velocities after the step's gravity, but an impact within the step can send a
     particle into one that was no candidate: three discs in a row, B hitting A at 30 m/s with A 5 cm from C,
     moved A through C in one step. The candidates cover every pair that can touch on straight paths at those
-    velocities over the whole step, with a skin of GRID_SKIN (r_i + r_j); so if no particle's displacement in
-    the step differs from its free one (dt v plus gravity's share over the `substeps`) by more than
+    velocities over the whole step, with a skin of GRID_SKIN (r_i + r_j); so if no particle's position after
+    any substep k differs from its free one (x + k h v plus gravity's share, h = dt / substeps) by more than
     GRID_SKIN min(r) from a common offset (the middle of their range: a pile that stops as one keeps it), no
-    other pair can have touched, and the step stands. Otherwise a second search lists the pairs that touch on
-    the straight lines from the start to the end positions (`contact.path_search`); if one was not solved
+    other pair can have touched, and the step stands. Otherwise a second search lists the pairs that come
+    within r_i + r_j of each other on the straight lines from the start to the end positions
+    (`contact.path_search`); with substeps the path bends at each substep, so that distance is widened by
+    each particle's largest departure from the straight line, at most twice its largest departure from its
+    free path (above) plus dt^2 |g| / 8 (the free path's own bend). If such a pair was not solved
     (`contact.unsolved`), the step is solved again from its start with both lists' pairs
     (`contact.merge_partners`), up to GRID_ATTEMPTS solves, and what the last check still finds is counted in
-    the overflow, with the touching pairs the second search had no slot for. One traced copy of the solve, in a
-    loop of `lax.cond`s (under `vmap` every branch runs: GRID_ATTEMPTS solves per step)."""
+    the overflow, with the touching pairs the second search had no slot for (an upper bound). One traced copy
+    of the solve, in a loop of `lax.cond`s (under `vmap` every branch runs: GRID_ATTEMPTS solves per step)."""
     cs = sys.contact
-    h = dt
-    v_free = sys.apply_gravity(v, h)
-    # symplectic Euler over S substeps moves a free particle by dt v + dt^2 g (S + 1) / (2 S)
-    free = h * (v_free if substeps == 1 else sys.apply_gravity(v, h * (substeps + 1) / (2 * substeps)))
+    h = dt / substeps
+    dim = x.shape[0]
+    v_free = sys.apply_gravity(v, dt)
     r_min = lax.stop_gradient(jnp.min(cs.radius_flat))
-    found, scan = contact.grid_search(cs, x, v_free, h)
+    found, scan = contact.grid_search(cs, x, v_free, dt)
+
+    def departure(k, xk):
+        """|x_k - free_k| per particle [n], less a common offset: free_k = x + k h v + h^2 g k (k + 1) / 2 after
+        k substeps of symplectic Euler."""
+        dev = lax.stop_gradient(xk - x - (k * h) * sys.apply_gravity(v, h * (k + 1) / 2)).reshape(dim, -1)
+        dev = dev - (jnp.max(dev, 1, keepdims=True) + jnp.min(dev, 1, keepdims=True)) / 2
+        return jnp.sqrt(jnp.sum(dev * dev, 0))
+
+    bend = None
+    if substeps > 1:
+        g = lax.stop_gradient(sys.apply_gravity(jnp.zeros_like(v), 1.0)).reshape(dim, -1)
+        bend = dt * dt * jnp.sqrt(jnp.sum(g * g, 0)) / 8
 
     def run(i, carry):
         partners, over, _, _ = carry
-        out = solve((partners, over))
-        dev = lax.stop_gradient(out[0] - x - free).reshape(x.shape[0], -1)
-        dev = dev - (jnp.max(dev, 1, keepdims=True) + jnp.min(dev, 1, keepdims=True)) / 2
-        stays = jnp.max(jnp.sum(dev * dev, 0)) <= (contact.GRID_SKIN * r_min) ** 2
+        out = solve((partners, over), departure)
+        worst = out[3]
+        stays = jnp.max(worst) <= contact.GRID_SKIN * r_min
 
         def verify(_):
-            wide = contact.path_search(cs, x, out[0], h, scan)
+            margin = None if bend is None else 2 * worst + bend
+            wide = contact.path_search(cs, x, out[0], dt, scan, margin)
             missed = contact.unsolved(wide[0], partners)
             last = i == GRID_ATTEMPTS - 1
             both, dropped = contact.merge_partners(partners, wide[0])
@@ -408,7 +423,8 @@ def grid_step(sys, x, v, dt, solve, substeps: int = 1):
     def attempt(i, carry):
         return lax.cond(carry[3], lambda c: run(i, c), lambda c: c, carry)
 
-    out = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(solve, found))
+    out = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(lambda f: solve(f, departure)[:3],
+                                                                              found))
     return lax.fori_loop(0, GRID_ATTEMPTS, attempt, found + (out, jnp.ones((), bool)))[2]
 
 

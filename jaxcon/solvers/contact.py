@@ -18,8 +18,9 @@ measured before the solve (after gravity):
 
 Friction is solved after each contact's normal row, as a 2-D or 3-D vector clamped to the Coulomb disc.
 
-Neighbour grid (a model built with ``collide="grid"``, or ``collide=True`` above 256 particles): the pairs are
-found at the start of every (sub)step by `neighbours` (a spatial hash of the positions) and kept in K slots per
+Neighbour grid (a model built with ``collide="grid"``, or ``collide=True`` above 256 particles; one search per
+step, shared by its substeps, `common.grid_substepped`): the pairs are
+found at the start of every step by `neighbours` (a spatial hash of the positions) and kept in K slots per
 particle; their rows are those above, with `Rows.i`/`Rows.j` [n, K] naming the particles (j = -1: empty slot,
 k = 0). A PGS sweep solves them after the obstacles slot by slot, the rows of one slot together with mass
 splitting (`grid_pass`); the position safety pass projects them the same way, and the warm start matches last
@@ -246,14 +247,17 @@ def _select(cs: ContactSystem, scan, close):
     return out[:, :K], overflow
 
 
-def path_search(cs: ContactSystem, x, x_end, h, scan):
+def path_search(cs: ContactSystem, x, x_end, h, scan, margin=None):
     """The pairs that touch on the way from x to x_end [dim, *view] (each particle on the straight line between
-    them: the nearest the pair comes is below r_i + r_j, less rounding), as `neighbours` lists them
-    (partners [n, K], overflow). The earlier search's `scan` is used again where its cells are wide enough
-    for these displacements, else the particles are scanned again (`lax.cond`)."""
+    them: the nearest the pair comes is below r_i + r_j, less rounding; with `margin` [n], a per-particle
+    widening, below r_i + r_j + margin_i + margin_j), as `neighbours` lists them (partners [n, K], overflow).
+    The earlier search's `scan` is used again where its cells are wide enough for these displacements, else the
+    particles are scanned again (`lax.cond`)."""
     dim = x.shape[0]
     xf, xe = (lax.stop_gradient(a.reshape(dim, -1)) for a in (x, x_end))
     r = lax.stop_gradient(cs.radius_flat)
+    if margin is not None:
+        r = r + lax.stop_gradient(margin)
     reach = 2 * (1 + GRID_SKIN) * jnp.max(r) + 2 * _spread(xe - xf)
     scan = lax.cond(reach <= scan[2], lambda _: scan, lambda _: _scan(cs.ct, xf, reach), None)
 

@@ -10,7 +10,8 @@ Per substep of length h, from positions x and predicted positions p = x + h (v +
   displacement of the two bodies over the substep, dx_t, is cancelled (lam_t -= dx_t / (w_i + w_j)) when the
   resulting |lam_t| <= mu lam_n; otherwise nothing is added (the kinetic part is the velocity pass's), and a
   lam_t left above a cone that shrank is scaled back onto it. Obstacles are solved one after another, each
-  for all particles at once; pairs round by round (a loop over the rounds, as `contact.sweep`).
+  for all particles at once; pairs round by round (a loop over the rounds, as `contact.sweep`), a grid
+  model's pairs slot by slot (`_grid_project`).
 * `velocity_pass` (once, after v = (p - x) / h): each contact with lam_n > 0 gets one velocity row, solved by
   `contact.sweep` starting from the position impulses lam / h: the normal velocity is set to
   max(-e vn_before, 0) (restitution; vn_before is the normal relative velocity at the start of the substep
