@@ -109,12 +109,16 @@ SLOW = {
     "tests/test_constraints.py::test_gradients_wrt_a_constraints_params_and_compliance[PGS-split]",
     # the bench's plain scatter-add reference: a bench concern (test_batching checks the batch-minor reference)
     "tests/test_solvers_a.py::test_plain_scatter_add_reference_is_the_same_pgs",
-    # Jacobi and SoftStep on the grid: their pair friction against SciPy stays (the same grid step, substeps and
-    # rows as the landing pile), as does the landing pile with PGS, XPBD and Penalty
+    # the landing pile on the grid with each solver but PGS: every solver's grid path (one search per step, its
+    # substeps, its rows) stays in test_contacts_grid_solvers.py::test_grid_pair_friction_holds_and_slides_as_scipy
     "tests/test_contacts_grid_solvers.py::test_a_pile_lands_and_rests_on_the_grid_with_every_solver[Jacobi]",
     "tests/test_contacts_grid_solvers.py::test_a_pile_lands_and_rests_on_the_grid_with_every_solver[SoftStep]",
-    # a 3-D grid: test_contacts_grid_solvers.py::test_penalty_on_the_grid_equals_all_pairs_in_3d and
-    # test_contacts_grid.py::test_an_impact_cannot_send_a_disc_through_one_that_was_no_candidate[3] (PGS)
+    "tests/test_contacts_grid_solvers.py::test_a_pile_lands_and_rests_on_the_grid_with_every_solver[XPBD]",
+    "tests/test_contacts_grid_solvers.py::test_a_pile_lands_and_rests_on_the_grid_with_every_solver[Penalty]",
+    "tests/test_contacts_grid_solvers.py::test_penalty_on_the_grid_equals_all_pairs_in_3d",
+    # batched_rollout of a contact model is a vmap of rollout: test_contacts.py::test_step_and_batched_rollout_...
+    "tests/test_contacts_grid_solvers.py::test_batched_rollout_of_a_grid_model_equals_one_rollout_per_state",
+    # a 3-D grid: test_contacts_grid.py::test_an_impact_cannot_send_a_disc_through_one_that_was_no_candidate[3]
     "tests/test_contacts_grid_solvers.py::test_a_3d_pile_rests_on_the_grid_with_substeps",
     # jc.fit through a grid: its gradient is test_contacts_grid.py::test_grid_gradients_equal_central_differences
     "tests/test_contacts_grid_solvers.py::test_fit_recovers_the_restitution_of_grid_pairs",
