@@ -91,6 +91,10 @@ def _bound_live_executables():
 # sibling case or in another test, kept out of the default run to hold it under 15 minutes on 2 cores. Each was
 # in the default suite and passed in the full run of 2026-11-24 (692 passed) before moving here.
 SLOW = {
+    # the float32 friction-gradient NaN's reproducer: its cause is test_restitution_scale_reverse_mode_is_finite_
+    # when_the_phases_agree, and the falling chain's float32 friction gradient against differences is
+    # test_contact_leaf_gradients_reverse_equals_forward_and_differences[falling_chain]
+    "tests/test_contacts_gradients.py::test_falling_chain_friction_gradient_in_float32",
     # billiards' gradient against differences: test_contacts.py::test_billiards_shot_gradient_matches_...; every
     # contact leaf's gradient: the falling-chain and drape cases of the same test
     "tests/test_contacts_gradients.py::test_contact_leaf_gradients_reverse_equals_forward_and_differences[billiards]",
@@ -109,8 +113,10 @@ SLOW = {
     "tests/test_constraints.py::test_gradients_wrt_a_constraints_params_and_compliance[PGS-split]",
     # the bench's plain scatter-add reference: a bench concern (test_batching checks the batch-minor reference)
     "tests/test_solvers_a.py::test_plain_scatter_add_reference_is_the_same_pgs",
-    # the landing pile on the grid with each solver but PGS: every solver's grid path (one search per step, its
-    # substeps, its rows) stays in test_contacts_grid_solvers.py::test_grid_pair_friction_holds_and_slides_as_scipy
+    # the landing pile on the grid with substeps: every solver's grid path (one search per step, its substeps,
+    # its rows) stays in test_contacts_grid_solvers.py::test_grid_pair_friction_holds_and_slides_as_scipy, and a
+    # landing pile on the grid in test_contacts_grid.py::test_pile_settles_without_overlap[grid]
+    "tests/test_contacts_grid_solvers.py::test_a_pile_lands_and_rests_on_the_grid_with_every_solver[PGS]",
     "tests/test_contacts_grid_solvers.py::test_a_pile_lands_and_rests_on_the_grid_with_every_solver[Jacobi]",
     "tests/test_contacts_grid_solvers.py::test_a_pile_lands_and_rests_on_the_grid_with_every_solver[SoftStep]",
     "tests/test_contacts_grid_solvers.py::test_a_pile_lands_and_rests_on_the_grid_with_every_solver[XPBD]",

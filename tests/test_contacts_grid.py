@@ -143,13 +143,14 @@ def test_bad_max_neighbours_and_solvers_without_contacts():
 @pytest.mark.parametrize("solver", [jc.PGS(4, substeps=2), jc.XPBD(2, substeps=4)], ids=["PGS", "XPBD"])
 def test_grid_gradients_equal_central_differences(solver):
     """d(final positions)/d(start velocity, radius) through a grid rollout with substeps (disc 0 hits the three
-    others, which hit each other; friction and restitution), against float64 central differences."""
+    others, which hit each other within the 12 steps; friction and restitution), against float64 central
+    differences."""
     x = _discs(2, 2, gap=0.01)
 
     def loss(v0, radius):
         model, state = jc.build(x, np.ones(4), velocities=jnp.zeros((4, 2)).at[0].set(v0), gravity=0.0,
                                 radius=radius, collide="grid", restitution=0.5, friction=0.2)
-        final, traj = jc.rollout(model, state, solver, 0.01, 20)
+        final, traj = jc.rollout(model, state, solver, 0.01, 12)
         return jnp.sum(final.x[:, 0] * jnp.arange(4.0) + final.x[:, 1]), jnp.max(traj.contact_overflow)
 
     p = (jnp.array([1.5, 0.8]), jnp.asarray(R))
