@@ -42,11 +42,11 @@ def scene(n: int, collide):
 ALL_PAIRS_MAX = 2048
 
 
-def per_step(n: int, collide, steps: int, solver=None):
+def per_step(n: int, collide, steps: int):
     """(seconds of the first call, compile included; best seconds per step of 3 compiled runs) of `steps` steps
-    of the lattice with `solver` (default PGS(10)) at dt 1/60."""
+    of the lattice with PGS(10) at dt 1/60."""
     model, state = scene(n, collide)
-    solver = PGS(10) if solver is None else solver
+    solver = PGS(10)
     run = jax.jit(lambda s: rollout(model, s, solver, 1 / 60, steps)[0].x)
     t = time.perf_counter()
     run(state).block_until_ready()

@@ -351,6 +351,14 @@ def shake_sweep(sys: System, fr0: tuple, h, tol=0.0):
 GRID_ATTEMPTS = 2
 
 
+def contact_substepped(sys, substep, substeps: int, x, v, lam, dt):
+    """`substepped` for a model with contacts, `substep(x, v, lam_ws, h, found=None)`: through `grid_substepped`
+    where the model's pairs come from a neighbour grid."""
+    if sys.contact.ct.has_grid:
+        return grid_substepped(sys, substep, substeps, x, v, lam, dt)
+    return substepped(substep, substeps, x, v, lam, dt)
+
+
 def grid_substepped(sys, substep, substeps: int, x, v, lam, dt):
     """A step of a model with a neighbour grid: `substep(x, v, lam_ws, h, found=...) -> (x, v, lam_h)` run
     `substeps` times (`substepped`) with the candidate pairs `found` = (partners, overflow) of one search made

@@ -22,7 +22,7 @@ from jaxcon.solvers.common import (
     contact_end,
     frames,
     gamma,
-    grid_substepped,
+    contact_substepped,
     restitution_phases,
     row_solve,
     split_position_pass,
@@ -99,10 +99,8 @@ class Jacobi(Solver):
 
     def _step(self, sys, x, v, lam, dt):
         if sys.contact is not None:
-            substep = functools.partial(self._substep_contacts, sys)
-            if sys.contact.ct.has_grid:
-                return grid_substepped(sys, substep, self.substeps, x, v, lam, dt)
-            return substepped(substep, self.substeps, x, v, lam, dt)
+            return contact_substepped(sys, functools.partial(self._substep_contacts, sys), self.substeps, x, v, lam,
+                                      dt)
         topo = sys.topology
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)

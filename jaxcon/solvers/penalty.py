@@ -16,7 +16,7 @@ from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact, contact_position
-from jaxcon.solvers.common import grid_substepped, with_found
+from jaxcon.solvers.common import contact_substepped, with_found
 
 #: The spring tension is clipped to +- STRETCH_CLIP * stiffness * rest_length (constraints with rest length
 #: > 0). A stable run never comes near it (it is a 1000% stretch, ten times `jc.diagnose`'s violation limit);
@@ -243,9 +243,7 @@ class Penalty(Solver):
                                           jnp.asarray(self.slip_velocity, dtype), partners)
             return x1 + h * dv, v1 + dv, (imp_b, with_found(imp_c, found))
 
-        if sys.contact.ct.has_grid:
-            return grid_substepped(sys, with_contacts, self.substeps, x, v, lam, dt)
-        return substepped(with_contacts, self.substeps, x, v, lam, dt)
+        return contact_substepped(sys, with_contacts, self.substeps, x, v, lam, dt)
 
 
 def _set_springs(sys, blk, x, v, k, c):

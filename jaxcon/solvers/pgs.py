@@ -23,7 +23,7 @@ from jaxcon.solvers.common import (
     contact_end,
     frames,
     gamma,
-    grid_substepped,
+    contact_substepped,
     restitution_phases,
     row_solve,
     split_position_pass,
@@ -125,8 +125,6 @@ class PGS(Solver):
         return factor if isinstance(factor, (int, float)) else jnp.asarray(factor, dtype)
 
     def _substep(self, sys, x, v, lam_ws, h):
-        if sys.contact is not None:
-            return self._substep_contacts(sys, x, v, lam_ws, h)
         topo = sys.topology
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
@@ -248,8 +246,9 @@ class PGS(Solver):
         return x + h * v, v, lam
 
     def _step(self, sys, x, v, lam, dt):
-        if sys.contact is not None and sys.contact.ct.has_grid:
-            return grid_substepped(sys, functools.partial(self._substep_contacts, sys), self.substeps, x, v, lam, dt)
+        if sys.contact is not None:
+            return contact_substepped(sys, functools.partial(self._substep_contacts, sys), self.substeps, x, v, lam,
+                                      dt)
         return substepped(functools.partial(self._substep, sys), self.substeps, x, v, lam, dt)
 
 

@@ -15,7 +15,7 @@ from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact, contact_soft
-from jaxcon.solvers.common import (apply_impulses, clamp_ropes, frames, gamma, grid_substepped, row_solve, warm_rows,
+from jaxcon.solvers.common import (apply_impulses, clamp_ropes, contact_substepped, frames, gamma, row_solve, warm_rows,
                                    with_found)
 
 
@@ -125,10 +125,8 @@ class SoftStep(Solver):
 
     def _step(self, sys, x, v, lam, dt):
         if sys.contact is not None:
-            substep = functools.partial(self._substep_contacts, sys)
-            if sys.contact.ct.has_grid:
-                return grid_substepped(sys, substep, self.substeps, x, v, lam, dt)
-            return substepped(substep, self.substeps, x, v, lam, dt)
+            return contact_substepped(sys, functools.partial(self._substep_contacts, sys), self.substeps, x, v, lam,
+                                      dt)
         dtype = x.dtype
         hertz = jnp.asarray(self.hertz, dtype)
         zeta = jnp.asarray(self.damping_ratio, dtype)

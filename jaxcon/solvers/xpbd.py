@@ -11,8 +11,7 @@ from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact, contact_position
-from jaxcon.core.substeps import substepped
-from jaxcon.solvers.common import grid_substepped, position_sweep, with_found
+from jaxcon.solvers.common import contact_substepped, position_sweep, with_found
 
 
 @pytree_dataclass
@@ -118,6 +117,4 @@ class XPBD(Solver):
             v, imp = contact_position.velocity_pass(cs, sys.w, p, v_before, (p - x) / h, imp, h, partners)
             return p, v, (tuple(m / h for m in mu), with_found(imp, found))
 
-        if cs.ct.has_grid:
-            return grid_substepped(sys, substep, self.substeps, x, v, lam, dt)
-        return substepped(substep, self.substeps, x, v, lam, dt)
+        return contact_substepped(sys, substep, self.substeps, x, v, lam, dt)
