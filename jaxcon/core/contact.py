@@ -25,6 +25,7 @@ one slot only, in the row of its lower-numbered particle.
 """
 from __future__ import annotations
 
+import itertools
 from typing import Any, NamedTuple, Optional
 
 import jax.numpy as jnp
@@ -143,8 +144,8 @@ class ContactTopology:
 
     def _grid(self, exclude, pos):
         """The neighbour grid's static parts: the hash table size, each internal particle's user index `uid`,
-        and `exclude` [n, D]: per internal particle, the internal indices of the particles a rod or rope joins
-        it to (-1 padding), which never collide."""
+        and `exclude` [n, D]: per internal particle, the internal indices of the particles it never collides
+        with (-1 padding): the pairs `joined_at_rest` skips, given as `exclude` [m, 2] in user indices."""
         self.grid_table = self.grid_uid = self.grid_exclude = None
         if not self.grid_k:
             return
@@ -156,11 +157,10 @@ class ContactTopology:
         ex = to_internal[ex]
         deg = np.bincount(ex.reshape(-1), minlength=n)
         table = np.full((n, max(int(deg.max(initial=0)), 1)), -1, np.int32)
-        fill = np.zeros(n, np.int64)
-        for a, b in ex:
-            table[a, fill[a]], table[b, fill[b]] = b, a
-            fill[a] += 1
-            fill[b] += 1
+        a, b = np.concatenate([ex[:, 0], ex[:, 1]]), np.concatenate([ex[:, 1], ex[:, 0]])
+        order = np.argsort(a, kind="stable")
+        a, b = a[order], b[order]
+        table[a, np.arange(len(a)) - (np.cumsum(deg) - deg)[a]] = b
         self.grid_table = grid_table_size(n)
         self.grid_uid, self.grid_exclude = StaticArray(uid), StaticArray(table)
 
@@ -190,6 +190,81 @@ class ContactTopology:
         return f"ContactTopology({self.n_planes} planes, {self.n_spheres} spheres, {pairs})"
 
 
+def _pieces(n: int, edges: np.ndarray) -> np.ndarray:
+    """Connected pieces of n particles joined by `edges` [m, 2]: a label per particle (the smallest index of its
+    piece), by hooking each edge's larger label onto its smaller one and pointer jumping until nothing changes
+    (a few rounds of array work, no Python loop over particles)."""
+    label = np.arange(n)
+    if not len(edges):
+        return label
+    a, b = edges[:, 0], edges[:, 1]
+    while True:
+        la, lb = label[a], label[b]
+        if np.array_equal(la, lb):
+            return label
+        np.minimum.at(label, np.maximum(la, lb), np.minimum(la, lb))
+        while True:
+            jumped = label[label]
+            if np.array_equal(jumped, label):
+                break
+            label = jumped
+
+
+def _near_pairs(x: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Pairs (i < j) [k, 2] with |x_j - x_i| <= r_i + r_j (to 1e-9 relative): particles hashed into cells of side
+    2 max(r), sorted by cell, and each one's own and neighbouring cells looked up with `searchsorted`."""
+    n, dim = x.shape
+    cut = 2 * float(r.max(initial=0.0))
+    if n < 2 or cut <= 0:
+        return np.zeros((0, 2), np.int64)
+    c = np.floor((x - x.min(0)) / cut).astype(np.int64)
+    span = c.max(0) + 3
+    def key(cells):
+        k = np.zeros(len(cells), np.int64)
+        for a in range(dim):
+            k = k * span[a] + cells[:, a] + 1
+        return k
+    order = np.argsort(key(c), kind="stable")
+    sorted_keys = key(c)[order]
+    out = []
+    for off in itertools.product((-1, 0, 1), repeat=dim):
+        q = key(c + np.asarray(off))
+        lo, hi = np.searchsorted(sorted_keys, q, "left"), np.searchsorted(sorted_keys, q, "right")
+        count = hi - lo
+        i = np.repeat(np.arange(n), count)
+        first = np.repeat(lo - (np.cumsum(count) - count), count)
+        j = order[first + np.arange(len(i))]
+        keep = i < j
+        i, j = i[keep], j[keep]
+        d = np.linalg.norm(x[j] - x[i], axis=1)
+        within = d <= (r[i] + r[j]) * (1 + 1e-9)
+        out.append(np.stack([i[within], j[within]], -1))
+    return np.concatenate(out)
+
+
+def joined_at_rest(n: int, groups, x, radius) -> np.ndarray:
+    """The pairs that `collide=True` skips, [m, 2] with i < j, unique: two particles of one constraint (a rod, a
+    rope, or one row of a constraint set), and two particles of one connected piece (particles joined through
+    constraints) already within contact distance, |x_j - x_i| <= r_i + r_j, at build (a cloth's or a chain's
+    neighbours when the radius is large). Particles of different pieces always collide (a rack of touching
+    balls, two cloths stacked), however close they start. `groups`: [m, a] particle index arrays (a >= 2),
+    `x` [n, dim] and `radius` [n] NumPy arrays (`radius` None: no size, so nothing is within contact)."""
+    groups = [np.asarray(g, np.int64).reshape(len(g), -1) for g in groups if len(g) and np.shape(g)[-1] >= 2]
+    if not groups:
+        return np.zeros((0, 2), np.int64)
+    own = [np.stack([g[:, p], g[:, q]], -1).reshape(-1, 2) for g in groups
+           for p, q in itertools.combinations(range(g.shape[1]), 2)]
+    pairs = [np.concatenate(own)]
+    if radius is not None:
+        label = _pieces(n, np.concatenate([np.stack([g[:, 0], g[:, k]], -1) for g in groups
+                                           for k in range(1, g.shape[1])]))
+        near = _near_pairs(np.asarray(x, np.float64), np.asarray(radius, np.float64))
+        pairs.append(near[label[near[:, 0]] == label[near[:, 1]]])
+    pairs = np.sort(np.concatenate(pairs), axis=1)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    return np.unique(pairs, axis=0).reshape(-1, 2)
+
+
 def check_max_neighbours(value, collide, dim: int) -> int:
     """`build`'s `max_neighbours` (None: `DEFAULT_MAX_NEIGHBOURS`): a Python int >= 1, only with
     ``collide=True`` or ``"grid"``."""
@@ -216,17 +291,16 @@ def uses_grid(collide, n: int) -> bool:
 
 
 def contact_pairs(collide, n: int, exclude: np.ndarray) -> np.ndarray:
-    """Candidate pairs from `collide`: False/None (none), True (every pair not joined by a constraint in
-    `exclude`, [m, 2]), or a list of (i, j) pairs (checked). A grid (`uses_grid`) has no static pairs."""
+    """Candidate pairs from `collide`: False/None (none), True (every pair not in `exclude` [m, 2], the pairs
+    `joined_at_rest` skips), or a list of (i, j) pairs (checked). A grid (`uses_grid`) has no static pairs."""
     if collide is None or collide is False or uses_grid(collide, n):
         return np.zeros((0, 2), np.int64)
     if collide is True:
         a, b = np.triu_indices(n, 1)
         pairs = np.stack([a, b], -1)
         if len(exclude):
-            joined = set(map(tuple, np.sort(exclude, axis=1).tolist()))
-            keep = np.array([(int(p), int(q)) not in joined for p, q in pairs], bool)
-            pairs = pairs[keep]
+            ex = np.sort(np.asarray(exclude, np.int64), axis=1)
+            pairs = pairs[~np.isin(pairs[:, 0] * n + pairs[:, 1], ex[:, 0] * n + ex[:, 1])]
         return pairs
     if isinstance(collide, (bool, np.bool_)):
         return contact_pairs(bool(collide), n, exclude)

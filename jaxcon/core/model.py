@@ -17,7 +17,7 @@ from jaxcon.core.checks import (
     resolve_dtype,
 )
 from jaxcon.core.constraints import Constraint, flatten_sets
-from jaxcon.core.contact import ContactTopology, check_max_neighbours, contact_pairs, uses_grid
+from jaxcon.core.contact import ContactTopology, check_max_neighbours, contact_pairs, joined_at_rest, uses_grid
 from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
 from jaxcon.core.topology import SetInfo, Topology, check_colouring, parse_pairs as _pairs, star_colouring
 
@@ -414,7 +414,8 @@ def build(
     pairs, is_rope = _constraint_pairs(rods, ropes, n)
     sets = _constraint_sets(constraints, x, is_fixed, dtype)
     m = len(pairs) + sum(c.m for c in sets)
-    contact_pairs_, grid_k = _collisions(collide, max_neighbours, n, dim, pairs)
+    skipped = _skipped(collide, pairs, sets, x, radius, n)
+    contact_pairs_, grid_k = _collisions(collide, max_neighbours, n, dim, skipped)
     has_contacts = bool(planes) or bool(spheres) or len(contact_pairs_) > 0 or grid_k > 0
     if m == 0 and not has_contacts:
         raise ValueError("build: the model needs at least one constraint (`rods`, `ropes` or `constraints`) or "
@@ -427,7 +428,7 @@ def build(
     topo = _topology(n, dim, i, j, is_rope, colouring, grid_shape, layout, is_fixed,
                      tuple(SetInfo(c.particles.array, c.unilateral, c.name) for c in sets))
     model = Model(inv_mass, rest, g, topo, constraints=tuple(sets))
-    return _with_contacts(model, State(x, v, jnp.zeros(m, dtype)), contact_pairs_, has_contacts, grid=(grid_k, pairs),
+    return _with_contacts(model, State(x, v, jnp.zeros(m, dtype)), contact_pairs_, has_contacts, grid=(grid_k, skipped),
                           radius=radius, planes=planes, spheres=spheres, friction=friction, restitution=restitution,
                           threshold=restitution_threshold)
 
@@ -450,6 +451,30 @@ def _constraint_pairs(rods, ropes, n):
     rod_pairs, rope_pairs = _pairs("rods", rods, n), _pairs("ropes", ropes, n)
     is_rope = np.concatenate([np.zeros(len(rod_pairs), bool), np.ones(len(rope_pairs), bool)])
     return np.concatenate([rod_pairs, rope_pairs], 0), is_rope
+
+
+def _skipped(collide, pairs, sets, x, radius, n):
+    """The pairs `collide=True` (or "grid") skips (`contact.joined_at_rest`): those of one rod, rope or constraint
+    row, and those of one connected piece within contact distance at build, which needs the positions and the
+    radius known now. An explicit list of pairs skips nothing; `collide=False` has nothing to skip."""
+    if isinstance(collide, (bool, np.bool_)) and not collide or collide is None:
+        return pairs
+    if not isinstance(collide, (bool, np.bool_, str)):
+        return pairs
+    groups = [pairs] + [c.particles.array for c in sets]
+    if not any(len(g) and np.shape(g)[-1] >= 2 for g in groups):
+        return pairs
+    r = None
+    if radius is not None and np.ndim(radius) in (0, 1) and np.size(radius) in (1, n):
+        xc, rc = concrete(x), concrete(radius)
+        if xc is None or rc is None:
+            raise TypeError("build: with collide=True and particles joined by rods, ropes or constraints, the pairs "
+                            "already within contact distance at build are skipped, which needs `positions` and "
+                            "`radius` known now, not traced; build the model outside the transformation (then "
+                            "change its leaves), or pass `collide` as a list of (i, j) pairs")
+        r = np.broadcast_to(np.asarray(rc, np.float64), (n,))
+        x = xc
+    return joined_at_rest(n, groups, x, r)
 
 
 def _collisions(collide, max_neighbours, n, dim, joined):

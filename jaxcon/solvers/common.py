@@ -365,15 +365,15 @@ def grid_substepped(sys, substep, substeps: int, x, v, lam, dt):
     for the whole step (`grid_step`). The contact slots are the same in every substep of a step, so their
     impulses add up over the step as any other impulse, and the next step's warm start matches them slot by
     slot as after a single substep."""
-    def solve(found, watch):
-        return substepped(functools.partial(substep, found=found), substeps, x, v, lam, dt, watch)
+    def solve(found):
+        return substepped(functools.partial(substep, found=found), substeps, x, v, lam, dt, path=True)
     return grid_step(sys, x, v, dt, solve, substeps)
 
 
 def grid_step(sys, x, v, dt, solve, substeps: int = 1):
-    """A step of a model with a neighbour grid, `solve(found, watch) -> (x, v, (lam, imp), worst)` being the
-    solver's step (all its substeps, `substepped`) with the candidate pairs `found` = (partners, overflow)
-    (`contact.neighbours`), and `worst` the maximum of `watch(k, x_k)` over its substeps.
+    """A step of a model with a neighbour grid, `solve(found) -> (x, v, (lam, imp), trail)` being the solver's
+    step (all its substeps, `substepped`) with the candidate pairs `found` = (partners, overflow)
+    (`contact.neighbours`), and `trail` [substeps, *x.shape] the positions after each substep.
 
     The search takes the velocities after the step's gravity, but an impact within the step can send a
     particle into one that was no candidate: three discs in a row, B hitting A at 30 m/s with A 5 cm from C,
@@ -383,10 +383,11 @@ def grid_step(sys, x, v, dt, solve, substeps: int = 1):
     GRID_SKIN min(r) from a common offset (the middle of their range: a pile that stops as one keeps it), no
     other pair can have touched, and the step stands. Otherwise a second search lists the pairs that come
     within r_i + r_j of each other on the straight lines from the start to the end positions
-    (`contact.path_search`); with substeps the path bends at each substep, so that distance is widened by
-    each particle's largest departure from the straight line, at most twice its largest departure from its
-    free path (above) plus dt^2 |g| / 8 (the free path's own bend). If such a pair was not solved
-    (`contact.unsolved`), the step is solved again from its start with both lists' pairs
+    (`contact.path_search`). With substeps a particle's path is the polyline through its positions after each
+    substep, straight within a substep: its distance from the chord at equal times is largest at a vertex, so
+    each particle's r is widened by its largest vertex distance from the chord (0 for one substep; a cloth that
+    lands keeps it small, where the distance from the free path is its whole fall in the step). If such a pair
+    was not solved (`contact.unsolved`), the step is solved again from its start with both lists' pairs
     (`contact.merge_partners`), up to GRID_ATTEMPTS solves, and what the last check still finds is counted in
     the overflow, with the touching pairs the second search had no slot for (an upper bound). One traced copy
     of the solve, in a loop of `lax.cond`s (under `vmap` every branch runs: GRID_ATTEMPTS solves per step)."""
@@ -396,27 +397,29 @@ def grid_step(sys, x, v, dt, solve, substeps: int = 1):
     v_free = sys.apply_gravity(v, dt)
     r_min = lax.stop_gradient(jnp.min(cs.radius_flat))
     found, scan = contact.grid_search(cs, x, v_free, dt)
+    x0, v0 = lax.stop_gradient(x), lax.stop_gradient(v)
+    g = lax.stop_gradient(sys.apply_gravity(jnp.zeros_like(v), 1.0))
+    k = jnp.arange(1, substeps + 1, dtype=x.dtype).reshape((substeps,) + (1,) * x.ndim)
 
-    def departure(k, xk):
-        """|x_k - free_k| per particle [n], less a common offset: free_k = x + k h v + h^2 g k (k + 1) / 2 after
-        k substeps of symplectic Euler."""
-        dev = lax.stop_gradient(xk - x - (k * h) * sys.apply_gravity(v, h * (k + 1) / 2)).reshape(dim, -1)
-        dev = dev - (jnp.max(dev, 1, keepdims=True) + jnp.min(dev, 1, keepdims=True)) / 2
-        return jnp.sqrt(jnp.sum(dev * dev, 0))
-
-    bend = None
-    if substeps > 1:
-        g = lax.stop_gradient(sys.apply_gravity(jnp.zeros_like(v), 1.0)).reshape(dim, -1)
-        bend = dt * dt * jnp.sqrt(jnp.sum(g * g, 0)) / 8
+    def spread(dev):
+        """Per-particle length of dev [substeps, dim, ...] less, per substep, a common offset (the middle of its
+        range over the particles), its largest over the substeps: [n]."""
+        dev = dev.reshape(substeps, dim, -1)
+        dev = dev - (jnp.max(dev, 2, keepdims=True) + jnp.min(dev, 2, keepdims=True)) / 2
+        return jnp.max(jnp.sqrt(jnp.sum(dev * dev, 1)), 0)
 
     def run(i, carry):
         partners, over, _, _ = carry
-        out = solve((partners, over), departure)
-        worst = out[3]
-        stays = jnp.max(worst) <= contact.GRID_SKIN * r_min
+        out = solve((partners, over))
+        trail = out[3]
+        free = x0 + (k * h) * v0 + (h * h) * (k * (k + 1) / 2) * g
+        stays = jnp.max(spread(trail - free)) <= contact.GRID_SKIN * r_min
 
         def verify(_):
-            margin = None if bend is None else 2 * worst + bend
+            margin = None
+            if substeps > 1:
+                chord = x0 + (k / substeps) * (trail[-1] - x0)
+                margin = jnp.max(jnp.sqrt(jnp.sum((trail - chord).reshape(substeps, dim, -1) ** 2, 1)), 0)
             wide = contact.path_search(cs, x, out[0], dt, scan, margin)
             missed = contact.unsolved(wide[0], partners)
             last = i == GRID_ATTEMPTS - 1
@@ -431,8 +434,7 @@ def grid_step(sys, x, v, dt, solve, substeps: int = 1):
     def attempt(i, carry):
         return lax.cond(carry[3], lambda c: run(i, c), lambda c: c, carry)
 
-    out = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(lambda f: solve(f, departure)[:3],
-                                                                              found))
+    out = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(lambda f: solve(f)[:3], found))
     return lax.fori_loop(0, GRID_ATTEMPTS, attempt, found + (out, jnp.ones((), bool)))[2]
 
 
