@@ -391,9 +391,12 @@ def build(
 
     Contacts (docs/contacts.md; values are differentiable leaves, counts static; then rods are optional):
       radius: particle radius (m), a scalar or [n]; default 0 (points). Particles in `collide` pairs need > 0.
-      collide: True (every pair of particles no rod or rope joins), or a list of candidate (i, j) pairs, or
-        "grid". True solves all pairs up to 256 particles and uses a neighbour grid above; "grid" always uses
-        the grid (docs/contacts.md); every contact solver steps a grid model, with substeps.
+      collide: True (every pair of particles, except two of one rod, rope or constraint row, and two of one
+        connected piece already within contact distance here: a cloth's or a chain's neighbours; particles of
+        different pieces always collide), or a list of candidate (i, j) pairs (exactly those), or "grid" (as
+        True). True solves all pairs up to 256 particles and uses a neighbour grid above; "grid" always uses
+        the grid (docs/contacts.md); every contact solver steps a grid model, with substeps. With rods and
+        True or "grid", `positions` and `radius` must be known now (the pairs skipped are static).
       max_neighbours: the grid's capacity, partners kept per particle (static int >= 1; default 8 in 2-D,
         16 in 3-D). Candidates beyond it are counted in `Trajectory.contact_overflow` and `jc.diagnose`.
       planes: [(normal, offset), ...]: particles stay in normal . x >= offset + radius (normal normalised).
@@ -414,8 +417,7 @@ def build(
     pairs, is_rope = _constraint_pairs(rods, ropes, n)
     sets = _constraint_sets(constraints, x, is_fixed, dtype)
     m = len(pairs) + sum(c.m for c in sets)
-    skipped = _skipped(collide, pairs, sets, x, radius, n)
-    contact_pairs_, grid_k = _collisions(collide, max_neighbours, n, dim, skipped)
+    contact_pairs_, grid_k, skipped = _collisions(collide, max_neighbours, n, dim, pairs, sets, x, radius)
     has_contacts = bool(planes) or bool(spheres) or len(contact_pairs_) > 0 or grid_k > 0
     if m == 0 and not has_contacts:
         raise ValueError("build: the model needs at least one constraint (`rods`, `ropes` or `constraints`) or "
@@ -477,13 +479,15 @@ def _skipped(collide, pairs, sets, x, radius, n):
     return joined_at_rest(n, groups, x, r)
 
 
-def _collisions(collide, max_neighbours, n, dim, joined):
-    """`build`'s particle-particle contacts: (static candidate pairs [k, 2], neighbour-grid capacity or 0)."""
+def _collisions(collide, max_neighbours, n, dim, rods, sets, x, radius):
+    """`build`'s particle-particle contacts: (static candidate pairs [k, 2], neighbour-grid capacity or 0, the
+    pairs that never collide [m, 2] (`_skipped`))."""
+    joined = _skipped(collide, rods, sets, x, radius, n)
     pairs = contact_pairs(collide, n, joined)
     grid_k = check_max_neighbours(max_neighbours, collide, dim) if uses_grid(collide, n) else 0
     if max_neighbours is not None and not grid_k:
         check_max_neighbours(max_neighbours, collide, dim)
-    return pairs, grid_k
+    return pairs, grid_k, joined
 
 
 def _velocities(velocities, x):

@@ -165,7 +165,8 @@ def neighbours(cs: ContactSystem, x, v, h):
     The particles are hashed into cells of side 2 (1 + GRID_SKIN) max(r) + 2 h max|v - mean(v)| (so every
     candidate of a particle lies in its own cell or one of the 3^dim - 1 around it), sorted by bucket, and each
     particle scans up to GRID_SCAN * K entries of each of those cells' buckets (`_scan`). A scanned j is kept
-    if it is in that cell, j's user index is above i's (each pair once), no rod or rope joins them, and
+    if it is in that cell, j's user index is above i's (each pair once), they are not a skipped pair
+    (`core.contact.joined_at_rest`: one rod, rope or constraint row, or touching at build within one piece), and
     |x_j - x_i| is below the candidate distance (1 + GRID_SKIN)(r_i + r_j) + h |v_j - v_i|; the first K are
     kept (`_select`). The overflow counts the candidates that found no slot plus the bucket entries beyond
     those scanned (those may or may not have been candidates: it is an upper bound, and 0 means no candidate
@@ -228,8 +229,8 @@ def _scan(ct: ContactTopology, xf, reach):
 
 
 def _select(cs: ContactSystem, scan, close):
-    """The first K scanned entries (`_scan`) j of each particle i with a higher user index, no rod or rope
-    joining them, and `close(jc)` [n, M] (jc the entries, -1 as 0): (partners [n, K], overflow: the entries
+    """The first K scanned entries (`_scan`) j of each particle i with a higher user index, not skipped
+    (`joined_at_rest`), and `close(jc)` [n, M] (jc the entries, -1 as 0): (partners [n, K], overflow: the entries
     kept beyond K plus the bucket entries left unscanned)."""
     ct = cs.ct
     K, (j, missed, _) = ct.grid_k, scan
