@@ -126,20 +126,28 @@ SLOW = {
     "tests/test_contacts_grid_solvers.py::test_batched_rollout_of_a_grid_model_equals_one_rollout_per_state",
     # a 3-D grid: test_contacts_grid.py::test_an_impact_cannot_send_a_disc_through_one_that_was_no_candidate[3]
     "tests/test_contacts_grid_solvers.py::test_a_3d_pile_rests_on_the_grid_with_substeps",
-    # jc.fit through a grid: its gradient is test_contacts_grid.py::test_grid_gradients_equal_central_differences
+    # jc.fit through a grid: a grid model's gradient against differences is test_contacts_self.py::test_self_
+    # collision_gradients_equal_central_differences[XPBD]
     "tests/test_contacts_grid_solvers.py::test_fit_recovers_the_restitution_of_grid_pairs",
-    # XPBD's grid gradient: PGS's stays (the same grid step and search), and XPBD's grid rows are exercised by
-    # test_contacts_grid_solvers.py's pile and friction tests
+    # XPBD's grid gradient on discs: XPBD's grid gradient through a folding cloth stays
+    # (test_contacts_self.py::test_self_collision_gradients_equal_central_differences[XPBD]), and XPBD's grid rows
+    # are exercised by test_contacts_grid_solvers.py's friction test
     "tests/test_contacts_grid.py::test_grid_gradients_equal_central_differences[XPBD]",
     # the drape's contact-leaf gradients against differences: the falling chain's stay in the same test, and the
     # drape's (sphere and plane) gradients are finite in test_other_solvers_contact_leaf_gradients_..[XPBD-drape]
     "tests/test_contacts_gradients.py::test_contact_leaf_gradients_reverse_equals_forward_and_differences[drape]",
-    # the 24x24 cloth's self-collision (issue 25's acceptance size, measured in docs/contacts.md): the 12x12 cloth
-    # on the grid stays, with both solvers, in the same test; PGS's self-collision gradient: XPBD's stays (the
-    # same rows and pairs)
+    # the 24x24 cloth's self-collision (issue 25's acceptance size, measured in docs/contacts.md): the 10x10 cloth
+    # on the grid stays (PGS) in the same test; PGS's self-collision gradient: XPBD's stays (the
+    # same grid step, search and pairs)
     "tests/test_contacts_self.py::test_a_cloth_dropped_and_folded_on_the_floor_never_passes_through_itself[PGS-24]",
     "tests/test_contacts_self.py::test_a_cloth_dropped_and_folded_on_the_floor_never_passes_through_itself[XPBD-24]",
     "tests/test_contacts_self.py::test_self_collision_gradients_equal_central_differences[PGS]",
+    # XPBD's 10x10 fold: PGS's stays in the same test, and XPBD's self-collision rows on the grid are in the
+    # gradient test test_self_collision_gradients_equal_central_differences[XPBD]
+    "tests/test_contacts_self.py::test_a_cloth_dropped_and_folded_on_the_floor_never_passes_through_itself[XPBD-10]",
+    # PGS's grid gradient on discs: the grid's search, path check and slots under reverse mode stay in
+    # test_contacts_self.py::test_self_collision_gradients_equal_central_differences[XPBD] (a grid model)
+    "tests/test_contacts_grid.py::test_grid_gradients_equal_central_differences[PGS]",
     # the all-pairs baseline of the grid's landing pile: all-pairs piles are tests/test_contacts_piles.py's
     "tests/test_contacts_grid.py::test_pile_settles_without_overlap[True]",
     # Jacobi's energy on the grid: PGS's stays; Jacobi's grid rows: the pair-friction test against SciPy

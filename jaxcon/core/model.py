@@ -391,12 +391,10 @@ def build(
 
     Contacts (docs/contacts.md; values are differentiable leaves, counts static; then rods are optional):
       radius: particle radius (m), a scalar or [n]; default 0 (points). Particles in `collide` pairs need > 0.
-      collide: True (every pair of particles, except two of one rod, rope or constraint row, and two of one
-        connected piece already within contact distance here: a cloth's or a chain's neighbours; particles of
-        different pieces always collide), or a list of candidate (i, j) pairs (exactly those), or "grid" (as
-        True). True solves all pairs up to 256 particles and uses a neighbour grid above; "grid" always uses
-        the grid (docs/contacts.md); every contact solver steps a grid model, with substeps. With rods and
-        True or "grid", `positions` and `radius` must be known now (the pairs skipped are static).
+      collide: True (every pair except two of one rod, rope or constraint row or two of one connected piece
+        within contact distance here, which needs concrete `positions` and `radius`: self-collision), "grid"
+        (the same pairs, always on the neighbour grid; True uses it above 256 particles), or a list of (i, j)
+        pairs, exactly those (docs/contacts.md). Every contact solver steps a grid model, with substeps.
       max_neighbours: the grid's capacity, partners kept per particle (static int >= 1; default 8 in 2-D,
         16 in 3-D). Candidates beyond it are counted in `Trajectory.contact_overflow` and `jc.diagnose`.
       planes: [(normal, offset), ...]: particles stay in normal . x >= offset + radius (normal normalised).
@@ -423,7 +421,6 @@ def build(
         raise ValueError("build: the model needs at least one constraint (`rods`, `ropes` or `constraints`) or "
                          "contact (`planes`, `spheres` or `collide`)")
     i, j = pairs[:, 0], pairs[:, 1]
-
     rest = _rest_lengths(rest_lengths, positions, x, i, j, dtype)
     v = _velocities(velocities, x)
     g = _gravity("build", gravity, dim, dtype)
