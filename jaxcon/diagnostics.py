@@ -49,7 +49,9 @@ def _kinetic_energy(model: Model, v):
 
 
 def energy(model: Model, x, v):
-    """Total mechanical energy (J) of the free particles: kinetic + gravitational. x, v: [..., n, dim]."""
+    """Total mechanical energy (J): the free particles' kinetic and gravitational energy, plus the potential
+    energy C^2 / (2 alpha) of every compliant constraint of a `jc.Constraint` set (alpha > 0; for a unilateral
+    one only while C < 0). x, v: [..., n, dim]."""
     check_particles("energy", model, "x", x)
     check_particles("energy", model, "v", v)
     return _energy(model, x, v)
@@ -58,7 +60,26 @@ def energy(model: Model, x, v):
 @jax.jit
 def _energy(model: Model, x, v):
     pe = -jnp.sum(_masses(model) * jnp.sum(x * model.gravity, -1), -1)
+    for c, C in zip(model.constraints, _set_values(model, x)):
+        alpha = jnp.broadcast_to(jnp.asarray(c.compliance, C.dtype), (c.m,))
+        soft = alpha > 0
+        stretch = jnp.minimum(C, 0) if c.unilateral else C
+        pe = pe + jnp.sum(jnp.where(soft, stretch * stretch / (2 * jnp.where(soft, alpha, 1)), 0), -1)
     return _kinetic_energy(model, v) + pe
+
+
+def _set_values(model: Model, x) -> list:
+    """C of every row of each `jc.Constraint` set at positions x [..., n, dim]: a list of [..., m_set], 0 where
+    C is not finite (a degenerate configuration, where the solvers leave the row inactive too)."""
+    out = []
+    for c in model.constraints:
+        xs = x[..., c.particles.array, :]                      # [..., m, k, dim]
+        f = jax.vmap(c.fn)
+        for _ in range(xs.ndim - 3):
+            f = jax.vmap(f, in_axes=(0, None))
+        C = f(xs, c.params)
+        out.append(jnp.where(jnp.isfinite(C), C, 0))
+    return out
 
 
 def energy_drift(model: Model, state, traj):
@@ -81,8 +102,10 @@ def check_particles(owner: str, model: Model, name: str, a) -> None:
 
 
 def violation(model: Model, x):
-    """Relative constraint violation [..., m]: |d - L| / L for rods, max(d - L, 0) / L for ropes (a slack rope
-    is not violated). Where L = 0 the absolute violation is returned. x: [..., n, dim]."""
+    """Constraint violation [..., m], in lam's order: |d - L| / L for rods, max(d - L, 0) / L for ropes (a slack
+    rope is not violated; where L = 0 the absolute violation), then for each `jc.Constraint` set |C| (C = 0) or
+    max(-C, 0) (C >= 0) in C's own units (radians for `bending` and `angle`, m^2 for `area`, ...). A compliant
+    set's C is its elastic deformation, reported as well. x: [..., n, dim]."""
     check_particles("violation", model, "x", x)
     return _violation(model, x)
 
@@ -94,7 +117,20 @@ def _violation(model: Model, x):
     err = d - model.rest_length
     err = jnp.where(t.is_rope, jnp.maximum(err, 0), jnp.abs(err))
     L = jnp.asarray(model.rest_length)
-    return err / jnp.where(L > 0, L, 1)
+    parts = [err / jnp.where(L > 0, L, 1)]
+    for c, C in zip(model.constraints, _set_values(model, x)):
+        parts.append(jnp.maximum(-C, 0) if c.unilateral else jnp.abs(C))
+    return jnp.concatenate(parts, -1)
+
+
+def _hard(model: Model, dtype):
+    """[m] True for the constraints `diagnose` holds to VIOLATION_LIMIT: rods, ropes and the rows of sets with
+    compliance 0 (a compliant row's C is its elastic deformation)."""
+    t = model.topology
+    parts = [jnp.ones(t.m_pairs, bool)]
+    for c in model.constraints:
+        parts.append(jnp.broadcast_to(jnp.asarray(c.compliance, dtype), (c.m,)) == 0)
+    return jnp.concatenate(parts)
 
 
 def _grid_partners(owner, model, partners, lead):
@@ -198,8 +234,10 @@ ENERGY_LIMIT = 10.0
 class Diagnosis(NamedTuple):
     """Result of `diagnose` for one trajectory (for a batch of rollouts, ``jax.vmap`` it).
 
-      violation:   [steps] largest relative constraint violation (``jc.violation``) of each step.
-      energy:      [steps] total mechanical energy (J) after each step.
+      violation:   [steps] largest constraint violation (``jc.violation``) of each step over the rods, ropes
+                   and hard (compliance 0) rows of constraint sets.
+      energy:      [steps] total mechanical energy (J) after each step (``jc.energy``: with the potential
+                   energy of compliant constraint sets).
       energy_gain: [steps] (E - E_0) / energy scale (see ENERGY_LIMIT).
       bad:         [steps] bool, the step is non-finite, over VIOLATION_LIMIT, ENERGY_LIMIT or
                    PENETRATION_LIMIT.
@@ -306,15 +344,18 @@ def _diagnosis(model: Model, traj: Trajectory, state0: Optional[State], energy: 
     the energy gain out of `bad` (`jc.fit` of a driven experiment: the drive's work is no divergence)."""
     t = model.topology
     x, v = traj.x, traj.v
-    viol = nan_max(_violation(model, x), axis=-1) if t.m_pairs else jnp.zeros(x.shape[:1], x.dtype)
+    viol = (nan_max(jnp.where(_hard(model, x.dtype), _violation(model, x), 0), axis=-1) if t.m
+            else jnp.zeros(x.shape[:1], x.dtype))
     e = _energy(model, x, v)
     x0, v0 = (x[0], v[0]) if state0 is None else (state0.x, state0.v)
     e0 = _energy(model, x0, v0)
     mass = jnp.sum(_masses(model))
     ke0 = _kinetic_energy(model, v0)
-    # With contacts, particles may fall without any constraint: the height scale is also the initial extent.
-    extent = 0 if model.contact is None else jnp.linalg.norm(jnp.max(x0, 0) - jnp.min(x0, 0)) + jnp.max(
-        jnp.abs(x0))
+    # With contacts, particles may fall without any constraint, and a model of constraint sets alone has no
+    # rest lengths: the height scale is then also the initial extent (without it, a spring of a set hanging
+    # from a pivot had a scale of ~1e-308 J and an energy gain of -3.8e303).
+    extent = 0 if model.contact is None and t.m_pairs else jnp.linalg.norm(jnp.max(x0, 0) - jnp.min(x0, 0)) + (
+        jnp.max(jnp.abs(x0)))
     scale = ke0 + mass * jnp.linalg.norm(model.gravity) * (jnp.sum(model.rest_length) + extent)
     scale = jnp.maximum(scale, jnp.finfo(jnp.result_type(scale)).tiny)
     gain = (e - e0) / scale

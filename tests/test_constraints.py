@@ -168,7 +168,7 @@ def test_a_bent_cloth_stays_bounded_and_bending_changes_its_drape(solver, bound)
         if bending is not None:
             energy = 0.5 / n ** 2 * np.sum(np.asarray(tr.v) ** 2, (-1, -2)) + G / n ** 2 * np.sum(x[..., 2], -1)
             assert energy.max() < 0.1, energy.max()
-            assert float(jc.violation(model, tr.x).max()) < bound
+            assert float(jc.violation(model, tr.x)[..., :model.topology.m_pairs].max()) < bound     # the rods
     assert rms[1e-2] < 0.2 * rms[None], rms
 
 
