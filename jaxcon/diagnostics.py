@@ -70,7 +70,8 @@ def _energy(model: Model, x, v):
 
 def _set_values(model: Model, x) -> list:
     """C of every row of each `jc.Constraint` set at positions x [..., n, dim]: a list of [..., m_set], 0 where
-    C is not finite (a degenerate configuration, where the solvers leave the row inactive too)."""
+    C is not finite at finite positions (a degenerate configuration, where the solvers leave the row inactive
+    too); NaN where the row's positions are not finite (a diverged run stays visible)."""
     out = []
     for c in model.constraints:
         xs = x[..., c.particles.array, :]                      # [..., m, k, dim]
@@ -78,7 +79,8 @@ def _set_values(model: Model, x) -> list:
         for _ in range(xs.ndim - 3):
             f = jax.vmap(f, in_axes=(0, None))
         C = f(xs, c.params)
-        out.append(jnp.where(jnp.isfinite(C), C, 0))
+        sane = jnp.all(jnp.isfinite(xs), axis=(-1, -2))
+        out.append(jnp.where(jnp.isfinite(C), C, jnp.where(sane, 0, jnp.nan)))
     return out
 
 

@@ -266,7 +266,8 @@ def cloth_drop(n: int = 24, size: float = 1.0, mass: float = 0.5, *, tilt: float
     every pair of its particles may collide except those a rod joins or that start within contact distance;
     True lists all pairs up to 256 particles and uses the neighbour grid above, "grid" always uses it. The
     grid's capacity per particle is `max_neighbours` (default 32: a fold brings more candidates per particle
-    than a pile of balls). Particle r * n + c sits in row r (height) and column c (x)."""
+    than a pile of balls). Particle r * n + c sits in row r (height) and column c (x). Unlike the other scenes,
+    its values must be concrete: which pairs start within contact distance is decided at build (`jc.build`)."""
     _count("cloth_drop", "n", n, 2)
     for name, v in (("size", size), ("mass", mass), ("radius", radius)):
         _value("cloth_drop", name, v, (), positive=True)
@@ -290,7 +291,7 @@ def cloth_drop(n: int = 24, size: float = 1.0, mass: float = 0.5, *, tilt: float
     up = s * gh.ravel()
     x = jnp.stack([s * gx.ravel(), up * jnp.sin(a), jnp.asarray(height).astype(dtype) + r + up * jnp.cos(a)], -1)
     pairs, colour = cloth_edges(n, n)
-    if isinstance(collide, bool) and not collide:
+    if collide is None or (isinstance(collide, (bool, np.bool_)) and not collide):
         raise ValueError("cloth_drop: `collide` must be True or 'grid' (the scene is about self-collision); build "
                          "the cloth with `jc.build` for one without")
     k = 32 if max_neighbours is None and (collide == "grid" or n * n > 256) else max_neighbours

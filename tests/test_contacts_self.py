@@ -61,6 +61,22 @@ def test_collide_skips_pairs_of_one_constraint_and_pairs_touching_at_build_withi
     assert explicit.contact.n_pairs == 2
 
 
+def test_a_whole_body_row_and_a_shared_pivot_do_not_make_neighbours():
+    """A row that spans a whole body (the 8 particles of an `area` polygon) joins them into one piece but does
+    not make its far sides neighbours: only the pairs within contact distance are skipped. Two pendulums on one
+    fixed pivot are two pieces (a fixed particle joins nothing), so their touching bobs collide."""
+    ring = np.stack([np.cos(np.arange(8) * np.pi / 4), np.sin(np.arange(8) * np.pi / 4)], -1)
+    edges = [(k, (k + 1) % 8) for k in range(8)]
+    poly = jc.constraints.area(np.arange(8)[None], rest=np.zeros(1))
+    model, _ = jc.build(ring, 1.0, rods=edges, radius=0.2, collide=True, constraints=[poly])
+    listed = set(map(tuple, np.sort(model.contact.pairs.array, 1).tolist()))
+    assert (0, 4) in listed and (0, 2) in listed and (0, 1) not in listed and len(listed) == 28 - 8
+
+    bobs, _ = jc.build([[0.0, 0.0], [-0.05, -1.0], [0.05, -1.0]], 1.0, rods=[(0, 1), (0, 2)], fixed=[0],
+                       radius=0.06, collide=True)
+    assert set(map(tuple, np.sort(bobs.contact.pairs.array, 1).tolist())) == {(1, 2)}
+
+
 def test_collide_refuses_traced_positions_when_it_must_find_the_pairs_touching_at_build():
     """Which pairs start within contact distance is static topology: under a transformation that traces the
     positions it cannot be decided, and build says so instead of guessing. Without rods nothing is skipped, so

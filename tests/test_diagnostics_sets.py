@@ -13,7 +13,8 @@ def _floor(x, p):
 def test_violation_lists_rods_then_every_set_in_lams_order_in_their_own_units():
     """A rod stretched 10%, a hard distance set 0.05 m long, a unilateral floor set 0.02 m under and one 0.3 m
     above: [0.1, 0.05, 0.02, 0] (a rod relative to its length, a set in C's units; a satisfied unilateral row
-    is not violated), for one configuration and for a stack of two. `diagnose` takes the largest."""
+    is not violated), for one configuration and for a stack of two; NaN for NaN positions, sets included (a C
+    that is not finite at finite positions is a degenerate row, reported as 0)."""
     dist = jc.constraints.distance(np.array([[1, 2]]), rest=np.array([0.5]))
     floor = jc.Constraint(_floor, np.array([[2], [3]]), unilateral=True, name="floor")
     x0 = np.array([[0.0, 1.0], [1.0, 1.0], [1.0, 0.5], [3.0, 0.5]])
@@ -25,6 +26,8 @@ def test_violation_lists_rods_then_every_set_in_lams_order_in_their_own_units():
     assert both.shape == (2, 4)
     np.testing.assert_allclose(both[1], want, atol=1e-12)
     np.testing.assert_allclose(both[0], [0, 0, 0, 0], atol=1e-12)
+    diverged = np.asarray(jc.violation(model, np.full_like(x, np.nan)))
+    assert np.isnan(diverged).all()                 # a diverged run is not reported as satisfied
 
 
 def test_a_compliant_spring_conserves_the_energy_that_counts_its_stretch():

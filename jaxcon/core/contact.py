@@ -211,13 +211,15 @@ def _pieces(n: int, edges: np.ndarray) -> np.ndarray:
 
 
 def _near_pairs(x: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """Pairs (i < j) [k, 2] with |x_j - x_i| <= r_i + r_j (to 1e-9 relative): particles hashed into cells of side
-    2 max(r), sorted by cell, and each one's own and neighbouring cells looked up with `searchsorted`."""
+    """Pairs (i < j) [k, 2] with |x_j - x_i| <= (r_i + r_j)(1 + 1e-9) (in float64, from the model's positions):
+    particles hashed into cells a little wider than 2 max(r), sorted by cell, and each one's own and
+    neighbouring cells looked up with `searchsorted`. Its cost grows with the particles per cell: one particle
+    far larger than the others puts many in one cell."""
     n, dim = x.shape
     cut = 2 * float(r.max(initial=0.0))
-    if n < 2 or cut <= 0:
+    if n < 2 or not cut > 0:
         return np.zeros((0, 2), np.int64)
-    c = np.floor((x - x.min(0)) / cut).astype(np.int64)
+    c = np.floor((x - x.min(0)) / (cut * (1 + 1e-6))).astype(np.int64)
     span = c.max(0) + 3
     def key(cells):
         k = np.zeros(len(cells), np.int64)
@@ -242,23 +244,39 @@ def _near_pairs(x: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.concatenate(out)
 
 
-def joined_at_rest(n: int, groups, x, radius) -> np.ndarray:
+#: A constraint row of at most this many particles (a rod, a bending hinge, an angle) makes its particles
+#: neighbours that never collide; a larger row (the polygon of an `area`, the mesh of a `volume`) spans a whole
+#: body, whose far sides must still collide, so it only joins them into one piece.
+ROW_NEIGHBOURS_MAX = 4
+
+
+def joined_at_rest(n: int, groups, x, radius, fixed=None) -> np.ndarray:
     """The pairs that `collide=True` skips, [m, 2] with i < j, unique: two particles of one constraint (a rod, a
-    rope, or one row of a constraint set), and two particles of one connected piece (particles joined through
-    constraints) already within contact distance, |x_j - x_i| <= r_i + r_j, at build (a cloth's or a chain's
-    neighbours when the radius is large). Particles of different pieces always collide (a rack of touching
-    balls, two cloths stacked), however close they start. `groups`: [m, a] particle index arrays (a >= 2),
-    `x` [n, dim] and `radius` [n] NumPy arrays (`radius` None: no size, so nothing is within contact)."""
+    rope, or one row of at most ROW_NEIGHBOURS_MAX particles of a constraint set), and two particles of one
+    connected piece already within contact distance, |x_j - x_i| <= r_i + r_j, at build (a cloth's or a chain's
+    neighbours when the radius is large). A piece is the particles joined through constraints, not through a
+    fixed particle: two pendulums on one pivot are two pieces. Particles of different pieces always collide
+    (a rack of touching balls, two cloths stacked), however close they start. `groups`: [m, a] particle index
+    arrays (a >= 2), `x` [n, dim] and `radius` [n] NumPy arrays (`radius` None: no size, so nothing is within
+    contact), `fixed` [n] bool or None."""
     groups = [np.asarray(g, np.int64).reshape(len(g), -1) for g in groups if len(g) and np.shape(g)[-1] >= 2]
     if not groups:
         return np.zeros((0, 2), np.int64)
-    own = [np.stack([g[:, p], g[:, q]], -1).reshape(-1, 2) for g in groups
+    own = [np.stack([g[:, p], g[:, q]], -1).reshape(-1, 2) for g in groups if g.shape[1] <= ROW_NEIGHBOURS_MAX
            for p, q in itertools.combinations(range(g.shape[1]), 2)]
-    pairs = [np.concatenate(own)]
+    pairs = own + [np.zeros((0, 2), np.int64)]
     if radius is not None:
-        label = _pieces(n, np.concatenate([np.stack([g[:, 0], g[:, k]], -1) for g in groups
-                                           for k in range(1, g.shape[1])]))
-        near = _near_pairs(np.asarray(x, np.float64), np.asarray(radius, np.float64))
+        free = np.ones(n, bool) if fixed is None else ~np.asarray(fixed, bool)
+        edges = []
+        for g in groups:                       # each row's free particles, joined to its first free one
+            ok = free[g]
+            anchor = g[np.arange(len(g)), np.argmax(ok, axis=1)]
+            for k in range(g.shape[1]):
+                keep = ok[:, k] & ok.any(axis=1)
+                edges.append(np.stack([anchor[keep], g[keep, k]], -1))
+        label = _pieces(n, np.concatenate(edges))
+        shared = np.flatnonzero(np.bincount(label, minlength=n)[label] > 1)   # particles of pieces of 2 or more
+        near = shared[_near_pairs(np.asarray(x, np.float64)[shared], np.asarray(radius, np.float64)[shared])]
         pairs.append(near[label[near[:, 0]] == label[near[:, 1]]])
     pairs = np.sort(np.concatenate(pairs), axis=1)
     pairs = pairs[pairs[:, 0] != pairs[:, 1]]

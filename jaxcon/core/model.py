@@ -391,8 +391,8 @@ def build(
 
     Contacts (docs/contacts.md; values are differentiable leaves, counts static; then rods are optional):
       radius: particle radius (m), a scalar or [n]; default 0 (points). Particles in `collide` pairs need > 0.
-      collide: True (every pair except two of one rod, rope or constraint row or two of one connected piece
-        within contact distance here, which needs concrete `positions` and `radius`: self-collision), "grid"
+      collide: True (every pair except two of one rod, rope or small constraint row or two of one connected
+        piece within contact distance here, which needs concrete `positions` and `radius`: self-collision), "grid"
         (the same pairs, always on the neighbour grid; True uses it above 256 particles), or a list of (i, j)
         pairs, exactly those (docs/contacts.md). Every contact solver steps a grid model, with substeps.
       max_neighbours: the grid's capacity, partners kept per particle (static int >= 1; default 8 in 2-D,
@@ -415,7 +415,7 @@ def build(
     pairs, is_rope = _constraint_pairs(rods, ropes, n)
     sets = _constraint_sets(constraints, x, is_fixed, dtype)
     m = len(pairs) + sum(c.m for c in sets)
-    contact_pairs_, grid_k, skipped = _collisions(collide, max_neighbours, n, dim, pairs, sets, x, radius)
+    contact_pairs_, grid_k, skipped = _collisions(collide, max_neighbours, n, dim, pairs, sets, x, radius, is_fixed)
     has_contacts = bool(planes) or bool(spheres) or len(contact_pairs_) > 0 or grid_k > 0
     if m == 0 and not has_contacts:
         raise ValueError("build: the model needs at least one constraint (`rods`, `ropes` or `constraints`) or "
@@ -452,9 +452,9 @@ def _constraint_pairs(rods, ropes, n):
     return np.concatenate([rod_pairs, rope_pairs], 0), is_rope
 
 
-def _skipped(collide, pairs, sets, x, radius, n):
-    """The pairs `collide=True` (or "grid") skips (`contact.joined_at_rest`): those of one rod, rope or constraint
-    row, and those of one connected piece within contact distance at build, which needs the positions and the
+def _skipped(collide, pairs, sets, x, radius, n, fixed):
+    """The pairs `collide=True` (or "grid") skips (`contact.joined_at_rest`): those of one rod, rope or small
+    constraint row, and those of one connected piece within contact distance at build, which needs the positions and the
     radius known now. An explicit list of pairs skips nothing; `collide=False` has nothing to skip."""
     if isinstance(collide, (bool, np.bool_)) and not collide or collide is None:
         return pairs
@@ -473,13 +473,15 @@ def _skipped(collide, pairs, sets, x, radius, n):
                             "change its leaves), or pass `collide` as a list of (i, j) pairs")
         r = np.broadcast_to(np.asarray(rc, np.float64), (n,))
         x = xc
-    return joined_at_rest(n, groups, x, r)
+        if not (np.isfinite(r).all() and np.isfinite(np.asarray(x, np.float64)).all()):
+            r = None                            # refused with a clear error further on (`_contact_leaves`)
+    return joined_at_rest(n, groups, x, r, fixed)
 
 
-def _collisions(collide, max_neighbours, n, dim, rods, sets, x, radius):
+def _collisions(collide, max_neighbours, n, dim, rods, sets, x, radius, fixed):
     """`build`'s particle-particle contacts: (static candidate pairs [k, 2], neighbour-grid capacity or 0, the
     pairs that never collide [m, 2] (`_skipped`))."""
-    joined = _skipped(collide, rods, sets, x, radius, n)
+    joined = _skipped(collide, rods, sets, x, radius, n, fixed)
     pairs = contact_pairs(collide, n, joined)
     grid_k = check_max_neighbours(max_neighbours, collide, dim) if uses_grid(collide, n) else 0
     if max_neighbours is not None and not grid_k:
