@@ -397,7 +397,7 @@ plt.tight_layout()'''),
            "itself. The check is geometric: the closest two particles that no rod joins come, in radii (a "
            "contact keeps them at 2; below 1 they have half passed through). The same cloth with the floor as "
            "its only contact folds through itself."),
-    ("code", '''n, steps = (10, 100) if SMALL else (24, 120)
+    ("code", '''n, steps = (8, 60) if SMALL else (24, 120)
 model, state = jc.scenes.cloth_drop(n, tilt=0.1, collide="grid")
 edges = jc.scenes.cloth_edges(n, n)[0]
 r = float(model.radius[0])

@@ -126,12 +126,10 @@ SLOW = {
     "tests/test_contacts_grid_solvers.py::test_batched_rollout_of_a_grid_model_equals_one_rollout_per_state",
     # a 3-D grid: test_contacts_grid.py::test_an_impact_cannot_send_a_disc_through_one_that_was_no_candidate[3]
     "tests/test_contacts_grid_solvers.py::test_a_3d_pile_rests_on_the_grid_with_substeps",
-    # jc.fit through a grid: a grid model's gradient against differences is test_contacts_self.py::test_self_
-    # collision_gradients_equal_central_differences[XPBD]
+    # jc.fit through a grid: its gradient is test_contacts_grid.py::test_grid_gradients_equal_central_differences
     "tests/test_contacts_grid_solvers.py::test_fit_recovers_the_restitution_of_grid_pairs",
-    # XPBD's grid gradient on discs: XPBD's grid gradient through a folding cloth stays
-    # (test_contacts_self.py::test_self_collision_gradients_equal_central_differences[XPBD]), and XPBD's grid rows
-    # are exercised by test_contacts_grid_solvers.py's friction test
+    # XPBD's grid gradient on discs: PGS's stays (test_grid_gradients_equal_central_differences[PGS]: the same
+    # grid step and search), and XPBD's grid rows are exercised by test_contacts_grid_solvers.py's friction test
     "tests/test_contacts_grid.py::test_grid_gradients_equal_central_differences[XPBD]",
     # the drape's contact-leaf gradients against differences: the falling chain's stay in the same test, and the
     # drape's (sphere and plane) gradients are finite in test_other_solvers_contact_leaf_gradients_..[XPBD-drape]
@@ -145,9 +143,12 @@ SLOW = {
     # XPBD's 10x10 fold: PGS's stays in the same test, and XPBD's self-collision rows on the grid are in the
     # gradient test test_self_collision_gradients_equal_central_differences[XPBD]
     "tests/test_contacts_self.py::test_a_cloth_dropped_and_folded_on_the_floor_never_passes_through_itself[XPBD-10]",
-    # PGS's grid gradient on discs: the grid's search, path check and slots under reverse mode stay in
-    # test_contacts_self.py::test_self_collision_gradients_equal_central_differences[XPBD] (a grid model)
-    "tests/test_contacts_grid.py::test_grid_gradients_equal_central_differences[PGS]",
+    # XPBD's self-collision gradient: the grid's search, path check and slots under reverse mode stay in
+    # test_contacts_grid.py::test_grid_gradients_equal_central_differences[PGS]
+    "tests/test_contacts_self.py::test_self_collision_gradients_equal_central_differences[XPBD]",
+    # PGS's 10x10 fold: self-collision on the grid stays in test_a_chain_that_coils_on_the_floor_never_passes_
+    # through_itself_2d_float32, and the check's failure without it in test_the_same_cloth_without_self_collision_..
+    "tests/test_contacts_self.py::test_a_cloth_dropped_and_folded_on_the_floor_never_passes_through_itself[PGS-10]",
     # the all-pairs baseline of the grid's landing pile: all-pairs piles are tests/test_contacts_piles.py's
     "tests/test_contacts_grid.py::test_pile_settles_without_overlap[True]",
     # Jacobi's energy on the grid: PGS's stays; Jacobi's grid rows: the pair-friction test against SciPy
