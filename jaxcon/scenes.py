@@ -269,6 +269,9 @@ def cloth_drop(n: int = 24, size: float = 1.0, mass: float = 0.5, *, tilt: float
     than a pile of balls). Particle r * n + c sits in row r (height) and column c (x). Unlike the other scenes,
     its values must be concrete: which pairs start within contact distance is decided at build (`jc.build`)."""
     _count("cloth_drop", "n", n, 2)
+    if collide is None or (isinstance(collide, (bool, np.bool_)) and not collide):
+        raise ValueError("cloth_drop: `collide` must be True or 'grid' (the scene is about self-collision); build "
+                         "the cloth with `jc.build` for one without")
     for name, v in (("size", size), ("mass", mass), ("radius", radius)):
         _value("cloth_drop", name, v, (), positive=True)
     for name, v in (("tilt", tilt), ("height", height), ("friction", friction)):
@@ -291,9 +294,6 @@ def cloth_drop(n: int = 24, size: float = 1.0, mass: float = 0.5, *, tilt: float
     up = s * gh.ravel()
     x = jnp.stack([s * gx.ravel(), up * jnp.sin(a), jnp.asarray(height).astype(dtype) + r + up * jnp.cos(a)], -1)
     pairs, colour = cloth_edges(n, n)
-    if collide is None or (isinstance(collide, (bool, np.bool_)) and not collide):
-        raise ValueError("cloth_drop: `collide` must be True or 'grid' (the scene is about self-collision); build "
-                         "the cloth with `jc.build` for one without")
     k = 32 if max_neighbours is None and (collide == "grid" or n * n > 256) else max_neighbours
     return build(x, jnp.asarray(mass).astype(dtype) / (n * n), rods=pairs, colouring=colour, grid_shape=(n, n),
                  radius=r, collide=collide, max_neighbours=k, planes=[((0.0, 0.0, 1.0), 0.0)], friction=friction,

@@ -226,8 +226,9 @@ def _near_pairs(x: np.ndarray, r: np.ndarray) -> np.ndarray:
         for a in range(dim):
             k = k * span[a] + cells[:, a] + 1
         return k
-    order = np.argsort(key(c), kind="stable")
-    sorted_keys = key(c)[order]
+    own = key(c)
+    order = np.argsort(own, kind="stable")
+    sorted_keys = own[order]
     out = []
     for off in itertools.product((-1, 0, 1), repeat=dim):
         q = key(c + np.asarray(off))

@@ -456,10 +456,8 @@ def _skipped(collide, pairs, sets, x, radius, n, fixed):
     """The pairs `collide=True` (or "grid") skips (`contact.joined_at_rest`): those of one rod, rope or small
     constraint row, and those of one connected piece within contact distance at build, which needs the positions and the
     radius known now. An explicit list of pairs skips nothing; `collide=False` has nothing to skip."""
-    if isinstance(collide, (bool, np.bool_)) and not collide or collide is None:
-        return pairs
-    if not isinstance(collide, (bool, np.bool_, str)):
-        return pairs
+    if not ((isinstance(collide, (bool, np.bool_)) and collide) or isinstance(collide, str)):
+        return pairs                            # False, None or an explicit list
     groups = [pairs] + [c.particles.array for c in sets]
     if not any(len(g) and np.shape(g)[-1] >= 2 for g in groups):
         return pairs

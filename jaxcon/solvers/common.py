@@ -400,6 +400,7 @@ def grid_step(sys, x, v, dt, solve, substeps: int = 1):
     x0, v0 = lax.stop_gradient(x), lax.stop_gradient(v)
     g = lax.stop_gradient(sys.apply_gravity(jnp.zeros_like(v), 1.0))
     k = jnp.arange(1, substeps + 1, dtype=x.dtype).reshape((substeps,) + (1,) * x.ndim)
+    free = x0 + (k * h) * v0 + (h * h) * (k * (k + 1) / 2) * g      # after each substep, without any impulse
 
     def spread(dev):
         """Per-particle length of dev [substeps, dim, ...] less, per substep, a common offset (the middle of its
@@ -412,7 +413,6 @@ def grid_step(sys, x, v, dt, solve, substeps: int = 1):
         partners, over, _, _ = carry
         out = solve((partners, over))
         trail = out[3]
-        free = x0 + (k * h) * v0 + (h * h) * (k * (k + 1) / 2) * g
         stays = jnp.max(spread(trail - free)) <= contact.GRID_SKIN * r_min
 
         def verify(_):
