@@ -129,8 +129,9 @@ def _xpbd_cloth(small: bool, repeats: int) -> dict:
 def user_constraint_cloth(small: bool, repeats: int) -> dict:
     """The cost of constraints written by the user: the bench cloth (32x32, float32, PGS(10), dt 1/240) with its
     edges as built-in rods and again as a `jc.Constraint` distance set (`jc.constraints.distance`: C and J from
-    autodiff, rows through the generic gather path), measured in the same run; and with `bending` on every
-    interior edge, XPBD. us per step, final state only, median after compilation."""
+    autodiff), built on the cloth's grid (`grid_shape`: its colours are strided boxes) and without it (gathers),
+    measured in the same run; and with `bending` on every interior edge, XPBD. us per step, final state only,
+    median after compilation."""
     from jaxcon.core import constraints
     from jaxcon.core.model import build
     from jaxcon.solvers.xpbd import XPBD
@@ -140,10 +141,13 @@ def user_constraint_cloth(small: bool, repeats: int) -> dict:
     pairs = np.asarray(rods_model.pairs)
     user = constraints.distance(pairs, rest=np.asarray(rods_model.rest_length))
     user_model, _ = build(np.asarray(state.x), 1.0 / (n * n), fixed=[0, n - 1], constraints=[user],
+                          dtype=np.float32, grid_shape=(n, n))
+    flat_model, _ = build(np.asarray(state.x), 1.0 / (n * n), fixed=[0, n - 1], constraints=[user],
                           dtype=np.float32)
     bend_model, bend_state = scenes.cloth(n, n, dtype=np.float32, bending=1e-3)
     row = {"case": f"cloth_{n}x{n}", "dtype": "float32", "dt": dt, "steps": steps}
     for key, model, solver, s0 in (("rods", rods_model, PGS(10), state), ("user_constraint", user_model, PGS(10), state),
+                                   ("user_constraint_no_grid", flat_model, PGS(10), state),
                                    ("rods_xpbd", rods_model, XPBD(), state),
                                    ("bending_xpbd", bend_model, XPBD(), bend_state)):
         fn = lambda s, model=model, solver=solver: rollout(model, s, solver, dt, steps, save_every=steps)  # noqa: E731
@@ -151,14 +155,17 @@ def user_constraint_cloth(small: bool, repeats: int) -> dict:
         row[key] = {"us_per_step": t_run / steps * 1e6, "compile_s": t_c, "constraints": model.n_constraints,
                     "colours": model.topology.n_colours}
     row["user_over_rods"] = row["user_constraint"]["us_per_step"] / row["rods"]["us_per_step"]
+    row["user_no_grid_over_rods"] = row["user_constraint_no_grid"]["us_per_step"] / row["rods"]["us_per_step"]
     row["bending_over_rods_xpbd"] = row["bending_xpbd"]["us_per_step"] / row["rods_xpbd"]["us_per_step"]
     print(f"\n{row['case']}, float32, dt 1/240, final state only (us/step, compile s):")
     for key, label in (("rods", "PGS(10), built-in rods"), ("user_constraint", "PGS(10), edges as a jc.Constraint"),
+                       ("user_constraint_no_grid", "PGS(10), the same without grid_shape"),
                        ("rods_xpbd", "XPBD(), built-in rods"), ("bending_xpbd", "XPBD(), rods + bending 1e-3")):
         r = row[key]
         print(f"  {label:36s} {r['us_per_step']:10.1f} {r['compile_s']:7.2f}  ({r['constraints']} constraints, "
               f"{r['colours']} colours)")
-    print(f"  user Constraint / rods: {row['user_over_rods']:.2f}x; bending / rods (XPBD): "
+    print(f"  user Constraint / rods: {row['user_over_rods']:.2f}x (without grid_shape: "
+          f"{row['user_no_grid_over_rods']:.2f}x); bending / rods (XPBD): "
           f"{row['bending_over_rods_xpbd']:.2f}x")
     return row
 

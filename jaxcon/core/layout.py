@@ -4,6 +4,8 @@ These are the building blocks every solver uses; none of them loops over particl
 """
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -189,10 +191,11 @@ class SetRow:
     table = False
     star = False
     rope = None
+    unrolled = None
 
     def __init__(self, idx, real, block):
         self.i_idx, self.real = _Mask(idx), _Mask(real)
-        self.generic, self.all_rope = block.generic, block.all_rope
+        self.generic, self.all_rope, self.set_block = block.generic, block.all_rope, block.set_block
 
     @property
     def has_rope(self) -> bool:
@@ -201,13 +204,26 @@ class SetRow:
 
 def gather_rows(topo: Topology, block, x):
     """A constraint set's particles' values: x [..., *view] -> [..., k, *block.shape] (or [..., k, W] for a
-    `SetRow`)."""
+    `SetRow`); strided slices for a colour of its own whose rows form boxes (`topology.SetColour`)."""
+    col = getattr(block, "unrolled", None)
+    if col is not None and col.boxes is not None:
+        lead = x.shape[: x.ndim - len(topo.view)]
+        return jnp.stack([_box_slice(x, b, topo.view).reshape(lead + (-1,)) for b in col.boxes], axis=-2)
     return jnp.take(_flat(topo, x), block.i_idx.array, axis=-1)
 
 
 def add_rows(topo: Topology, block, v, p):
-    """v + the contributions p [..., k, *block.shape] of a constraint set's rows, summed per particle (a
-    scatter-add); padding rows contribute nothing (they are masked here)."""
+    """v + the contributions p [..., k, *block.shape] of a constraint set's rows, summed per particle. A colour of
+    its own (`topology.SetColour`) writes through pads of its boxes, or a gather (each free particle is in one of
+    its rows at most); a table or `SetRow`, with a scatter-add, padding rows masked."""
+    col = getattr(block, "unrolled", None)
+    if col is not None:
+        lead = p.shape[:-2]
+        if col.boxes is not None:
+            pads = [_box_pad(p[..., s, :].reshape(lead + b[2]), b, topo.view) for s, b in enumerate(col.boxes)]
+            return v + functools.reduce(jnp.add, pads)
+        flat = jnp.concatenate([p.reshape(lead + (-1,)), jnp.zeros(lead + (1,), p.dtype)], axis=-1)
+        return v + jnp.take(flat, col.src.array, axis=-1).reshape(lead + topo.view)
     p = p * block.real.array.astype(p.dtype)
     return _flat(topo, v).at[..., block.i_idx.array].add(p).reshape(v.shape)
 
@@ -216,9 +232,12 @@ def each_colour(block, fn, carry, rows):
     """Gauss-Seidel over the colours of `block`: ``carry, out = fn(carry, colour, rows)``, colour by colour.
 
     `rows` is a pytree of per-constraint arrays [..., *block.shape]. A strided or gather block is one colour,
-    so fn runs once on it. A table block (compact layout) runs fn on each of its rows, in order, in a
-    `lax.scan`: `colour` is then a `Row` and every leaf of `rows` is that row, [..., width]. `out` (a pytree of
+    so fn runs once on it; so is a constraint set's colour of its own (`Block.unrolled`). A table block (compact
+    layout) runs fn on each of its rows, in order, in a `lax.scan`: `colour` is then a `Row` and every leaf of
+    `rows` is that row, [..., width]; a constraint set's table the same way (`SetRow`). `out` (a pytree of
     per-constraint arrays of the colour) is stacked back to [..., *block.shape]."""
+    if getattr(block, "unrolled", None) is not None:
+        return fn(carry, block, rows)
     if getattr(block, "generic", None) is not None:     # a constraint set: its colours [C, W], in order
         xs = (np.moveaxis(block.i_idx.array, -2, 0), block.real.array,
               jax.tree.map(lambda a: jnp.moveaxis(a, -2, 0), rows))

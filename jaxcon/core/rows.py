@@ -14,6 +14,7 @@ whose user C would be L - |x_j - x_i|, the two agree exactly (docs/constraints.m
 """
 from __future__ import annotations
 
+import functools
 from typing import Any, NamedTuple, Optional
 
 import jax
@@ -56,7 +57,8 @@ def set_system(con, block, first: int, dtype) -> SetSystem:
     def table(a):
         a = jnp.asarray(a)
         a = a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a
-        return jnp.moveaxis(jnp.take(a, local, axis=0, mode="fill", fill_value=0), (0, 1), (-2, -1))
+        r = tuple(range(local.ndim))
+        return jnp.moveaxis(jnp.take(a, local, axis=0, mode="fill", fill_value=0), r, tuple(i - local.ndim for i in r))
 
     return SetSystem({k: table(v) for k, v in con.params.items()}, table(con.compliance))
 
@@ -69,22 +71,39 @@ _NUDGE = 1e-3
 
 def evaluate(fn, x, params):
     """C and J = dC/dx of rows: x [*rows, k, dim], params {name: [*rows, ...]} -> (C [*rows], J [*rows, k, dim],
-    ok [*rows]). Rows whose C or J is not finite are evaluated at nudged positions (no gradient to x through
-    them) and reported not ok; their C and J are 0."""
+    ok [*rows]). Rows whose C or J is not finite are reported not ok, with C and J 0; their derivatives are
+    taken at nudged positions (so no NaN reaches reverse mode through them; e.g. |x1 - x0| - L at x1 = x0).
+
+    The rows are evaluated once (`_rows`, a custom JVP): only a derivative of C and J with respect to x or the
+    parameters evaluates them again, at the nudged positions where needed."""
     lead = x.shape[:-2]
     xf = x.reshape((-1,) + x.shape[-2:])
     pf = jax.tree.map(lambda a: a.reshape((xf.shape[0],) + a.shape[len(lead):]), params)
-    vg = jax.vmap(jax.value_and_grad(fn))
-    C0, J0 = vg(lax.stop_gradient(xf), lax.stop_gradient(pf))
-    ok = jnp.isfinite(C0) & jnp.all(jnp.isfinite(J0), axis=(-1, -2))
-    k, dim = xf.shape[-2:]
-    pattern = jnp.asarray((np.arange(k * dim).reshape(k, dim) % 7 + 1) / 7.0, xf.dtype)
-    scale = 1 + jnp.max(jnp.abs(lax.stop_gradient(xf)), axis=(-1, -2), keepdims=True)
-    x_in = jnp.where(ok[:, None, None], xf, lax.stop_gradient(xf) + _NUDGE * scale * pattern)
-    C, J = vg(x_in, pf)
-    C = jnp.where(ok, C, 0)
-    J = jnp.where(ok[:, None, None], J, 0)
+    C, J, ok = _rows(fn, xf, pf)
     return C.reshape(lead), J.reshape(lead + J.shape[1:]), ok.reshape(lead)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _rows(fn, x, p):
+    """(C, J, ok) of rows x [r, k, dim], params {[r, ...]}: `evaluate`."""
+    C, J = jax.vmap(jax.value_and_grad(fn))(x, p)
+    ok = jnp.isfinite(C) & jnp.all(jnp.isfinite(J), axis=(-1, -2))
+    return jnp.where(ok, C, 0), jnp.where(ok[:, None, None], J, 0), ok
+
+
+@_rows.defjvp
+def _rows_jvp(fn, primals, tangents):
+    x, p = primals
+    tx, tp = tangents
+    C, J, ok = _rows(fn, x, p)
+    k, dim = x.shape[-2:]
+    pattern = jnp.asarray((np.arange(k * dim).reshape(k, dim) % 7 + 1) / 7.0, x.dtype)
+    scale = 1 + jnp.max(jnp.abs(x), axis=(-1, -2), keepdims=True)
+    x_in = jnp.where(ok[:, None, None], x, x + _NUDGE * scale * pattern)
+    _, (dC, dJ) = jax.jvp(jax.vmap(jax.value_and_grad(fn)), (x_in, p), (tx, tp))
+    dC = jnp.where(ok, dC, 0)
+    dJ = jnp.where(ok[:, None, None], dJ, 0)
+    return (C, J, ok), (dC, dJ, np.zeros(ok.shape, jax.dtypes.float0))
 
 
 def _rows_first(x, params, nrow):

@@ -4,6 +4,7 @@ from __future__ import annotations
 from typing import Any
 
 import jax.numpy as jnp
+import numpy as np
 
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
@@ -32,7 +33,7 @@ class System:
     topology: Topology = static_field()
     contact: Any = None          # a ContactSystem (jaxcon.core.contact) for models with contacts
     accel: Any = None            # the step's external acceleration w F [dim, *view], or None
-    sets: tuple = ()             # per jc.Constraint set: its leaves in its block's table (`rows.SetSystem`)
+    sets: tuple = ()             # per block of a jc.Constraint set: its leaves in its layout (`rows.SetSystem`)
     cons: tuple = static_field(default=())   # the sets' `Constraint`s with their leaves dropped (fn, kind, name)
 
     @classmethod
@@ -43,18 +44,16 @@ class System:
         if t.has_sets:         # rest lengths are the pairs'; a set block's entries are unused zeros
             rest = jnp.concatenate([rest, jnp.zeros(t.m - t.m_pairs, dtype)])
         rest = L.constraints_in(t, rest)
-        sets, first = [], t.m_pairs
-        set_blocks = [b for b in t.blocks if b.generic is not None]
-        for con, blk in zip(model.constraints, set_blocks):
-            sets.append(R.set_system(con, blk, first, dtype))
-            first += con.m
+        firsts = np.cumsum([t.m_pairs] + [c.m for c in model.constraints]).tolist()
+        sets = [R.set_system(model.constraints[b.generic], b, firsts[b.generic], dtype)
+                for b in t.blocks if b.generic is not None]
         cons = tuple(_static(c) for c in model.constraints)
         return cls(w, rest, jnp.asarray(model.gravity, dtype), t, ContactSystem.from_model(model, dtype), None,
                    tuple(sets), cons)
 
     def set_of(self, block):
         """(the `Constraint`, its `SetSystem`) of a set's block (or `SetRow`)."""
-        return self.cons[block.generic], self.sets[block.generic]
+        return self.cons[block.generic], self.sets[block.set_block]
 
     def apply_gravity(self, v, h):
         """v + h (g + w F): gravity on the free particles, and the step's external forces (`accel`) if any."""

@@ -203,6 +203,8 @@ class Block:
     hub: Optional[StaticArray] = None    # particles and user constraint indices, padded with n and m)
     generic: Optional[int] = None # a constraint set's block: the set's index; i_idx [k, C, W] its particles (internal
     real: Optional[StaticArray] = None   # flat), src [C, W] user constraint indices (m: padding), real [C, W]
+    unrolled: Optional["SetColour"] = None   # a set's colour of its own (shape (size,), i_idx [k, size], src [size])
+    set_block: Optional[int] = None      # a set's block: its index among the set blocks (`System.sets`)
 
     @property
     def strided(self) -> bool:
@@ -232,6 +234,76 @@ class SetInfo:
     @property
     def key(self):
         return (self.particles.tobytes(), self.particles.shape, self.unilateral, self.name)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SetColour:
+    """One colour of a constraint set's block when the block is swept unrolled (`Topology._set_blocks`): its
+    `size` rows are the first `size` of the block's row c. `idx` [k, size]: their particles (internal flat
+    indices). `boxes`: per slot, the strided box of the view its particles form, in row order, or None (then
+    rows are read with a gather). `src` [n]: for each particle the position of its row entry in the slot-major
+    [k * size] contributions, k * size where it has none (or is fixed: its contributions are 0), so the write-back
+    is a gather."""
+
+    size: int
+    idx: StaticArray
+    boxes: Optional[tuple]
+    src: StaticArray
+
+
+def _set_colour(rows: np.ndarray, view: tuple, fixed: np.ndarray) -> SetColour:
+    """The `SetColour` of rows [size, k] (internal flat particle indices, sorted by their first particle)."""
+    size, k = rows.shape
+    boxes = tuple(_strided_box(np.stack(np.unravel_index(rows[:, s], view), -1)) for s in range(k))
+    if any(b is None for b in boxes) or len({b[2] for b in boxes}) != 1:
+        boxes = None
+    flat = rows.T.reshape(-1)                                    # slot-major
+    free = ~fixed[flat]
+    # a colour never holds a free particle twice: rows name distinct particles, and the colourings keep rows
+    # that share a free particle apart
+    assert len(np.unique(flat[free])) == int(free.sum()), "a colour shares a free particle"
+    src = np.full(len(fixed), k * size, np.int32)
+    src[flat[free]] = np.flatnonzero(free)
+    return SetColour(size, StaticArray(rows.T.astype(np.int32)), boxes, StaticArray(src))
+
+
+#: The most colours `lattice_colouring` may give one group of translated rows before it gives up.
+_LATTICE_MAX = 64
+
+
+def lattice_colouring(rows: np.ndarray, view: tuple) -> Optional[np.ndarray]:
+    """A colouring of constraints of any arity (rows [m, k], internal flat particle indices of the grid `view`)
+    whose colours are strided boxes where the rows are translates of a few stencils (a cloth's edges, its hinges,
+    a lattice's cells): rows with the same offsets between their particles form a group, and a group's row at
+    grid position p gets the class of p modulo q, with q the smallest vector (by the number of classes) such that
+    no two rows of one class share a particle (no difference of two of the stencil's offsets is 0 modulo q).
+    Each class is a colour, groups one after another. Returns None when a row repeats a particle or a group would
+    need more than `_LATTICE_MAX` classes."""
+    import itertools
+
+    m, k = rows.shape
+    coords = np.stack(np.unravel_index(rows, view), -1)                    # [m, k, ndim]
+    off = (coords - coords[:, :1]).reshape(m, -1)
+    sigs, group = np.unique(off, axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    colour, base = np.empty(m, np.int64), 0
+    for g, sig in enumerate(sigs):
+        o = sig.reshape(k, -1)
+        d = (o[:, None] - o[None]).reshape(-1, o.shape[1])
+        d = d[np.any(d != 0, axis=1)]
+        if len(d) != k * (k - 1):                                        # a row repeats a particle
+            return None
+        ext = o.max(0) - o.min(0)
+        if int(np.prod(ext + 1)) > _LATTICE_MAX:
+            return None
+        q = min((q for q in itertools.product(*[range(1, e + 2) for e in ext])
+                 if np.all(np.any(d % np.asarray(q) != 0, axis=1))), key=lambda q: (int(np.prod(q)), q))
+        sel = np.flatnonzero(group == g)
+        cls = np.ravel_multi_index(tuple((coords[sel, 0] % np.asarray(q)).T), q)
+        used, inv = np.unique(cls, return_inverse=True)
+        colour[sel] = base + inv.reshape(-1)
+        base += len(used)
+    return colour
 
 
 def greedy_colouring_any(particles: np.ndarray, n: int, fixed=None) -> np.ndarray:
@@ -290,6 +362,7 @@ class Topology:
         self.has_rods = bool((~self.is_rope).any())
         if layout not in LAYOUTS:
             raise ValueError(f"build: `layout` must be one of {LAYOUTS}, got {layout!r}")
+        self._layout = layout
         # a model without rods or ropes has no colours to put in a table: it keeps the (empty) unrolled layout
         if self.m_pairs and (layout == "compact" or (layout == "auto" and self._small())):
             self._compact()
@@ -300,7 +373,7 @@ class Topology:
         self._key = (
             self.n, self.dim, self.view, self.i.tobytes(), self.j.tobytes(), self.is_rope.tobytes(),
             self.colour.tobytes(), self.layout, self.star.tobytes(), self.fixed.tobytes(),
-            tuple(s.key for s in self.sets),
+            tuple(s.key for s in self.sets), tuple(b.size for b in self.blocks if b.unrolled is not None),
         )
         self._hash = hash(self._key)
 
@@ -314,7 +387,8 @@ class Topology:
 
     @property
     def n_colours(self) -> int:
-        return sum(int(b.shape[0]) if b.table or b.star or b.generic is not None else 1 for b in self.blocks)
+        return sum(int(b.shape[0]) if b.table or b.star or (b.generic is not None and b.unrolled is None) else 1
+                   for b in self.blocks)
 
     def _small(self) -> bool:
         plain = self.colour[self.star < 0]
@@ -481,27 +555,55 @@ class Topology:
     def _set_blocks(self):
         """Append one generic block per constraint set (`SetInfo`), after the pairs' blocks, and extend perm /
         inv_perm to every constraint. A set's block is a table [colours, width] (its own greedy colouring over
-        the free particles), swept colour by colour in a scan (`layout.each_colour`)."""
+        the free particles). Small sets with several colours (the rule of the compact layout: `_unrolls`) are
+        swept colour by colour in a scan (`layout.each_colour`); the others unrolled, colour by colour, each read
+        and written through strided boxes where its rows form them (`SetColour`), else a gather. An unrolled set
+        takes `lattice_colouring` where every one of its colours is then a box and it needs no more colours."""
         if not self.sets:
             return
         to_internal = np.arange(self.n) if self.pos is None else np.asarray(self.pos)
+        fixed = np.zeros(self.n, bool)
+        fixed[to_internal] = self.fixed
         blocks, perm = list(self.blocks), [np.asarray(self.perm, np.int64)]
-        first, offset = self.m_pairs, self.m_pairs
+        first, offset, n_set_blocks = self.m_pairs, self.m_pairs, 0
         for s_id, info in enumerate(self.sets):
+            internal = to_internal[info.particles]
             colour = greedy_colouring_any(info.particles, self.n, self.fixed)
+            groups, unroll = None, self._unrolls(np.bincount(colour))
+            if unroll:
+                groups = self._set_colours(internal, colour, fixed)
+                lattice = lattice_colouring(internal, self.view) if len(self.view) and info.k > 1 else None
+                if lattice is not None and lattice.max() <= colour.max():
+                    tried = self._set_colours(internal, lattice, fixed)
+                    if all(c.boxes is not None for c, _ in tried):
+                        colour, groups = lattice, tried
+            if groups is not None:                          # one block per colour, read and written directly
+                for sc, rows in groups:
+                    src = (first + rows).astype(np.int32)
+                    blocks.append(Block(offset, sc.size, (sc.size,), None, None, sc.idx, None, StaticArray(src),
+                                        None, info.unilateral, flat=StaticArray(np.arange(sc.size, dtype=np.int32)),
+                                        generic=s_id, real=StaticArray(np.ones(sc.size, bool)), unrolled=sc,
+                                        set_block=n_set_blocks))
+                    perm.append(src.astype(np.int64))
+                    offset += sc.size
+                    n_set_blocks += 1
+                first += info.m
+                continue
             C, W = int(colour.max()) + 1, int(np.bincount(colour).max())
             idx = np.zeros((C, W, info.k), np.int32)
             src = np.full((C, W), self.m, np.int32)
             for c in range(C):
                 rows = np.flatnonzero(colour == c)
-                idx[c, :len(rows)] = to_internal[info.particles[rows]]
-                idx[c, len(rows):] = to_internal[info.particles[rows[0]]]      # padding: a real row, masked
+                idx[c, :len(rows)] = internal[rows]
+                idx[c, len(rows):] = internal[rows[0]]      # padding: a real row, masked
                 src[c, :len(rows)] = first + rows
             real = src < self.m
             flat = np.flatnonzero(real.reshape(-1)).astype(np.int32)
             blocks.append(Block(offset, info.m, (C, W), None, None, StaticArray(np.moveaxis(idx, -1, 0)), None,
                                 StaticArray(src), None,
-                                info.unilateral, flat=StaticArray(flat), generic=s_id, real=StaticArray(real)))
+                                info.unilateral, flat=StaticArray(flat), generic=s_id, real=StaticArray(real),
+                                set_block=n_set_blocks))
+            n_set_blocks += 1
             perm.append(src.reshape(-1)[flat].astype(np.int64))
             first += info.m
             offset += info.m
@@ -510,6 +612,25 @@ class Topology:
         perm.setflags(write=False)
         inv_perm.setflags(write=False)
         self.blocks, self.perm, self.inv_perm = tuple(blocks), perm, inv_perm
+
+    def _unrolls(self, sizes) -> bool:
+        """Whether a constraint set with colours of these sizes is swept unrolled: never in the compact layout or
+        beyond `UNROLLED_MAX_COLOURS` colours; always in the unrolled one; by default unless it is small with
+        several colours (`COMPACT_MIN_COLOURS`, `COMPACT_MAX_WIDTH`), as for rods."""
+        if self._layout == "compact" or len(sizes) > UNROLLED_MAX_COLOURS:
+            return False
+        return self._layout == "unrolled" or not (len(sizes) >= COMPACT_MIN_COLOURS
+                                                   and int(sizes.max()) <= COMPACT_MAX_WIDTH)
+
+    def _set_colours(self, internal, colour, fixed) -> list:
+        """[(SetColour, its rows: set row indices sorted by their first particle's internal position)] per
+        colour."""
+        out = []
+        for c in range(int(colour.max()) + 1):
+            rows = np.flatnonzero(colour == c)
+            rows = rows[np.argsort(internal[rows, 0], kind="stable")]
+            out.append((_set_colour(internal[rows], self.view, fixed), rows))
+        return out
 
     def __hash__(self):
         return self._hash

@@ -224,7 +224,7 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_
             if blk.generic is not None:
                 if not sets:
                     continue
-                rows = (sys.sets[blk.generic], mu[c])
+                rows = (sys.set_of(blk)[1], mu[c])
                 if jacobi_relaxation is None:
                     p, mu[c] = L.each_colour(blk, colour_set, p, rows)
                 else:
@@ -339,7 +339,7 @@ def shake_sweep(sys: System, fr0: tuple, h, tol=0.0):
         mu = list(mu)
         for c, (blk, f, r2) in enumerate(zip(topo.blocks, fr0, rest2)):
             if blk.generic is not None:
-                (x, v), mu[c] = L.each_colour(blk, shake_set, (x, v), (f, sys.sets[blk.generic], mu[c]))
+                (x, v), mu[c] = L.each_colour(blk, shake_set, (x, v), (f, sys.set_of(blk)[1], mu[c]))
             else:
                 (x, v), mu[c] = L.each_colour(blk, colour, (x, v), (f, r2, mu[c]))
         return x, v, tuple(mu)

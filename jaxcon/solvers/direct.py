@@ -167,17 +167,20 @@ class Direct(Solver):
 
 def _user_sets(sys):
     """Per constraint set: (fn, particles [m, k] user indices, params {[m, ...]}, compliance [m]) in user
-    order, from the system's table layout."""
+    order, from the system's layout (a table, or one block per colour)."""
     out = []
     blocks = [b for b in sys.topology.blocks if b.generic is not None]
-    for blk, info, con, ssys in zip(blocks, sys.topology.sets, sys.cons, sys.sets):
-        flat = blk.flat.array
-        order = flat[np.argsort(blk.src.array.reshape(-1)[flat], kind="stable")]   # user order within the set
+    for s, (info, con) in enumerate(zip(sys.topology.sets, sys.cons)):
+        mine = [(b, ssys) for b, ssys in zip(blocks, sys.sets) if b.generic == s]
+        src = np.concatenate([b.src.array.reshape(-1)[b.flat.array] for b, _ in mine])
+        order = np.argsort(src, kind="stable")                   # user order within the set
 
-        def user(a):
-            a = a.reshape(a.shape[: a.ndim - 2] + (-1,))[..., order]
-            return jnp.moveaxis(a, -1, 0)
-        out.append((con.fn, info.particles, jax.tree.map(user, ssys.params), user(ssys.compliance)))
+        def user(*a):
+            flat = [x.reshape(x.shape[: x.ndim - len(b.shape)] + (-1,))[..., b.flat.array]
+                    for x, (b, _) in zip(a, mine)]
+            return jnp.moveaxis(jnp.concatenate(flat, axis=-1)[..., order], -1, 0)
+        out.append((con.fn, info.particles, jax.tree.map(user, *[ssys.params for _, ssys in mine]),
+                    user(*[ssys.compliance for _, ssys in mine])))
     return out
 
 
