@@ -683,12 +683,26 @@ def _constraint_sets(constraints, x, fixed, dtype) -> list:
         if not (hasattr(out_shape, "shape") and out_shape.shape == ()):
             raise ValueError(f"build: constraint set {c.name!r}: `fn` must return a scalar for x [{c.arity}, {dim}], "
                              f"got {getattr(out_shape, 'shape', out_shape)}")
+        if c.grad is not None:
+            _check_grad(c, dim, dtype, one)
         name = c.name if c.name not in names else f"{c.name}_{names[c.name]}"
         names[c.name] = names.get(c.name, 0) + 1
         cast = {k: jnp.asarray(v).astype(dtype) if jnp.issubdtype(jnp.result_type(v), jnp.floating) else v
                 for k, v in c.params.items()}
         out.append(c.replace(params=cast, compliance=jnp.asarray(c.compliance).astype(dtype), name=name))
     return out
+
+
+def _check_grad(c, dim, dtype, one):
+    """A set's hand-written gradient must run on x [k, dim] and one constraint's params and return [k, dim]."""
+    try:
+        g = jax.eval_shape(c.grad, jax.ShapeDtypeStruct((c.arity, dim), dtype), one)
+    except Exception as e:           # noqa: BLE001 - the user's function failed on the right shapes
+        raise ValueError(f"build: constraint set {c.name!r}: `grad` failed on x [{c.arity}, {dim}] and one "
+                         f"constraint's params: {type(e).__name__}: {e}") from None
+    if getattr(g, "shape", None) != (c.arity, dim):
+        raise ValueError(f"build: constraint set {c.name!r}: `grad` must return the gradient of `fn`, "
+                         f"[{c.arity}, {dim}], got {getattr(g, 'shape', g)}")
 
 
 def _colouring(colouring, i, j, n, fixed):

@@ -65,17 +65,19 @@ class System:
 class _StaticConstraint:
     """A `Constraint` without its leaves, hashable by its function, kind and name (jit metadata)."""
 
-    __slots__ = ("fn", "unilateral", "name", "m")
+    __slots__ = ("fn", "grad", "unilateral", "name", "m")
 
     def __init__(self, c):
-        self.fn, self.unilateral, self.name, self.m = c.fn, c.unilateral, c.name, c.m
+        self.fn, self.grad, self.unilateral, self.name, self.m = c.fn, c.grad, c.unilateral, c.name, c.m
+
+    def _key(self):
+        return self.fn, self.grad, self.unilateral, self.name, self.m
 
     def __hash__(self):
-        return hash((self.fn, self.unilateral, self.name, self.m))
+        return hash(self._key())
 
     def __eq__(self, other):
-        return isinstance(other, _StaticConstraint) and (self.fn, self.unilateral, self.name, self.m) == (
-            other.fn, other.unilateral, other.name, other.m)
+        return isinstance(other, _StaticConstraint) and self._key() == other._key()
 
 
 def _static(c):

@@ -166,7 +166,7 @@ class Direct(Solver):
 
 
 def _user_sets(sys):
-    """Per constraint set: (fn, particles [m, k] user indices, params {[m, ...]}, compliance [m]) in user
+    """Per constraint set: ((fn, grad), particles [m, k] user indices, params {[m, ...]}, compliance [m]) in user
     order, from the system's layout (a table, or one block per colour)."""
     out = []
     blocks = [b for b in sys.topology.blocks if b.generic is not None]
@@ -179,7 +179,7 @@ def _user_sets(sys):
             flat = [x.reshape(x.shape[: x.ndim - len(b.shape)] + (-1,))[..., b.flat.array]
                     for x, (b, _) in zip(a, mine)]
             return jnp.moveaxis(jnp.concatenate(flat, axis=-1)[..., order], -1, 0)
-        out.append((con.fn, info.particles, jax.tree.map(user, *[ssys.params for _, ssys in mine]),
+        out.append(((con.fn, con.grad), info.particles, jax.tree.map(user, *[ssys.params for _, ssys in mine]),
                     user(*[ssys.compliance for _, ssys in mine])))
     return out
 
@@ -232,8 +232,8 @@ def _all_rows(xu, rest, sets, topo, values=False):
             Jp = jnp.zeros((topo.m_pairs, n, dim), xu.dtype).at[np.arange(topo.m_pairs), i].set(nrm)
             rows_J.append(Jp.at[np.arange(topo.m_pairs), j].set(-nrm))
             rows_a.append(jnp.zeros(topo.m_pairs, xu.dtype))
-    for fn, parts, params, comp in sets:
-        C, J, _ = R.evaluate(fn, xu[parts], params)
+    for (fn, grad), parts, params, comp in sets:
+        C, J, _ = R.evaluate(fn, xu[parts], params, grad)
         rows_C.append(-C)
         if not values:
             rows_J.append(jnp.zeros((len(parts), n, dim), xu.dtype).at[np.arange(len(parts))[:, None], parts].add(J))
