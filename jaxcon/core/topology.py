@@ -238,10 +238,10 @@ class SetInfo:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class SetColour:
-    """One colour of a constraint set's block when the block is swept unrolled (`Topology._set_blocks`): its
-    `size` rows are the first `size` of the block's row c. `idx` [k, size]: their particles (internal flat
-    indices). `boxes`: per slot, the strided box of the view its particles form, in row order, or None (then
-    rows are read with a gather). `src` [n]: for each particle the position of its row entry in the slot-major
+    """One colour of a constraint set that is a block of its own (`Block.unrolled`, `Topology._set_blocks`):
+    `size` rows, ordered by their first particle. `idx` [k, size]: their particles (internal flat indices).
+    `boxes`: per slot, the strided box of the view its particles form, in row order, or None (then rows are read
+    with a gather). `src` [n]: for each particle the position of its row entry in the slot-major
     [k * size] contributions, k * size where it has none (or is fixed: its contributions are 0), so the write-back
     is a gather."""
 
@@ -271,20 +271,22 @@ def _set_colour(rows: np.ndarray, view: tuple, fixed: np.ndarray) -> SetColour:
 _LATTICE_MAX = 64
 
 
-def lattice_colouring(rows: np.ndarray, view: tuple) -> Optional[np.ndarray]:
+def lattice_colouring(rows: np.ndarray, view: tuple, most: Optional[int] = None) -> Optional[np.ndarray]:
     """A colouring of constraints of any arity (rows [m, k], internal flat particle indices of the grid `view`)
     whose colours are strided boxes where the rows are translates of a few stencils (a cloth's edges, its hinges,
     a lattice's cells): rows with the same offsets between their particles form a group, and a group's row at
     grid position p gets the class of p modulo q, with q the smallest vector (by the number of classes) such that
     no two rows of one class share a particle (no difference of two of the stencil's offsets is 0 modulo q).
-    Each class is a colour, groups one after another. Returns None when a row repeats a particle or a group would
-    need more than `_LATTICE_MAX` classes."""
+    Each class is a colour, groups one after another. Returns None when a row repeats a particle, a group would
+    need more than `_LATTICE_MAX` classes, or the colours would be more than `most`."""
     import itertools
 
     m, k = rows.shape
     coords = np.stack(np.unravel_index(rows, view), -1)                    # [m, k, ndim]
     off = (coords - coords[:, :1]).reshape(m, -1)
     sigs, group = np.unique(off, axis=0, return_inverse=True)
+    if most is not None and len(sigs) > most:             # every stencil needs a colour of its own
+        return None
     group = group.reshape(-1)
     colour, base = np.empty(m, np.int64), 0
     for g, sig in enumerate(sigs):
@@ -303,6 +305,8 @@ def lattice_colouring(rows: np.ndarray, view: tuple) -> Optional[np.ndarray]:
         used, inv = np.unique(cls, return_inverse=True)
         colour[sel] = base + inv.reshape(-1)
         base += len(used)
+        if most is not None and base > most:
+            return None
     return colour
 
 
@@ -553,12 +557,13 @@ class Topology:
     has_sets = property(lambda self: bool(self.sets))
 
     def _set_blocks(self):
-        """Append one generic block per constraint set (`SetInfo`), after the pairs' blocks, and extend perm /
-        inv_perm to every constraint. A set's block is a table [colours, width] (its own greedy colouring over
-        the free particles). Small sets with several colours (the rule of the compact layout: `_unrolls`) are
-        swept colour by colour in a scan (`layout.each_colour`); the others unrolled, colour by colour, each read
-        and written through strided boxes where its rows form them (`SetColour`), else a gather. An unrolled set
-        takes `lattice_colouring` where every one of its colours is then a box and it needs no more colours."""
+        """Append the constraint sets' blocks (`SetInfo`), after the pairs' blocks, and extend perm / inv_perm to
+        every constraint. Each set has its own colouring (greedy over the free particles). Small sets with
+        several colours (the rule of the compact layout: `_unrolls`) are one table block [colours, width], swept
+        colour by colour in a scan (`layout.each_colour`); the others get a block per colour (`Block.unrolled`),
+        read and written through strided boxes where its rows form them (`SetColour`), else gathers. Such a set
+        takes `lattice_colouring` where every one of its colours is then a box and it needs no more colours than
+        the greedy one."""
         if not self.sets:
             return
         to_internal = np.arange(self.n) if self.pos is None else np.asarray(self.pos)
@@ -572,8 +577,8 @@ class Topology:
             groups, unroll = None, self._unrolls(np.bincount(colour))
             if unroll:
                 groups = self._set_colours(internal, colour, fixed)
-                lattice = lattice_colouring(internal, self.view) if len(self.view) and info.k > 1 else None
-                if lattice is not None and lattice.max() <= colour.max():
+                lattice = lattice_colouring(internal, self.view, int(colour.max()) + 1) if info.k > 1 else None
+                if lattice is not None:
                     tried = self._set_colours(internal, lattice, fixed)
                     if all(c.boxes is not None for c, _ in tried):
                         colour, groups = lattice, tried
