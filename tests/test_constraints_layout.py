@@ -40,8 +40,9 @@ def test_a_cloth_of_user_distances_on_boxes_equals_the_rods(solver):
     unrolled: every colour is a strided box (the lattice colouring: 8 colours, where the greedy one needs 8 and
     gives gathers), and the trajectory and impulses equal the built-in rods' with that colouring (float64, 30
     steps of a 0.5 kg cloth held by two corners, rest lengths 2% short so it is under tension). RATTLE is not
-    compared: on this over-constrained cloth its set rows and its rods differ by 1e-3 after 30 steps in either
-    layout (its rods and its sets iterate SHAKE differently), and with 50 iterations both diverge)."""
+    compared: the two fixed corners keep their distance, so the shortened rods cannot all be met, and RATTLE's
+    projection does not settle on such a cloth (its rods and its set rows differ by 1e-3 after 30 steps in
+    either layout, and with 50 iterations both diverge)."""
     n = 7
     pairs, x = _cloth_pairs(n, np.random.default_rng(0))
     rest = 0.98 * np.linalg.norm(x[pairs[:, 1]] - x[pairs[:, 0]], axis=-1)

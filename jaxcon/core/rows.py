@@ -31,7 +31,7 @@ class SetFrame(NamedTuple):
     """A `jc.Constraint` set's rows at some positions, row axes last (`layout.SetRow`): J [dim, k, *shape]
     (dC/dx of the user's C, dim first like a rod's n), w [k, *shape], C (C_lib = -C_user) [*shape],
     s = sum_p w_p |J_p|^2, k = 1 / s (0 where a row is padding, has no mobility or no defined gradient), alpha:
-    the compliance [*shape]."""
+    the compliance [*shape], Jw = J w (M^-1 J^T, what `apply` scales: computed once per frame, not per sweep)."""
 
     J: Array
     w: Array
@@ -39,6 +39,7 @@ class SetFrame(NamedTuple):
     s: Array
     k: Array
     alpha: Array
+    Jw: Array
 
 
 class SetSystem(NamedTuple):
@@ -136,7 +137,7 @@ def set_frame(topo, block, con, ssys: SetSystem, x, w) -> SetFrame:
     s = jnp.sum(wg * jnp.sum(J * J, axis=0), axis=0)
     live = ok & real & (s > L.min_length2(x.dtype))
     return SetFrame(J, wg, -C, s, jnp.where(live, L.safe_reciprocal(jnp.where(live, s, 1)), 0),
-                    ssys.compliance)
+                    ssys.compliance, J * wg)
 
 
 def rel(topo, block, f, v):
@@ -150,7 +151,7 @@ def rel(topo, block, f, v):
 def apply(topo, block, f, v, dlam):
     """v + M^-1 J^T dlam for the rows' multiplier changes `dlam` (tension sign; module docstring)."""
     if getattr(block, "generic", None) is not None:
-        return L.add_rows(topo, block, v, f.J * (f.w * dlam))
+        return L.add_rows(topo, block, v, f.Jw * dlam)
     p = f.n * dlam
     return L.add_pair(topo, block, v, f.wi * p, -f.wj * p)
 

@@ -63,20 +63,31 @@ def apply_impulses(sys: System, v, fr: tuple, lam: tuple):
     return v
 
 
+class Spring(NamedTuple):
+    """A set's rows' implicit spring over a step h (`gamma`): g = alpha / h^2 and the reciprocal of the row's
+    J M^-1 J^T + g (0 where the row is inactive), computed once per (sub)step rather than in every sweep."""
+
+    g: Array
+    inv: Array
+
+
 def gamma(f, h):
     """A set's rows' compliance term alpha / h^2 (velocity level: the implicit spring of compliance alpha over a
-    step h), or None for rods and ropes."""
+    step h) with its solve's reciprocal (`Spring`), or None for rods and ropes."""
     a = R.compliant(f)
-    return None if a is None else a / (h * h)
+    if a is None:
+        return None
+    g = a / (h * h)
+    return Spring(g, L.safe_reciprocal(f.s + g) * (f.k > 0).astype(g.dtype))
 
 
 def row_solve(topo, blk, f, rhs, lam, g):
     """The multiplier changes of one colour's rows with right-hand side `rhs` (rel + bias): `layout.block_solve`,
-    or for a set's compliant rows (`g` = alpha / h^2, `gamma`) (rhs - g lam) / (J M^-1 J^T + g), the implicit
-    spring (XPBD's update at velocity level: at rest, C = alpha * force; its warm start: `warm_rows`)."""
+    or for a set's compliant rows (`g`: their `Spring`, g = alpha / h^2) (rhs - g lam) / (J M^-1 J^T + g), the
+    implicit spring (XPBD's update at velocity level: at rest, C = alpha * force; its warm start: `warm_rows`)."""
     if g is None:
         return L.block_solve(topo, blk, f, rhs)
-    return (rhs - g * lam) * L.safe_reciprocal(f.s + g) * (f.k > 0).astype(rhs.dtype)
+    return (rhs - g.g * lam) * g.inv
 
 
 def velocity_bias(topo: Topology, fr: tuple, beta, h, slop=None) -> tuple:
@@ -206,7 +217,7 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_
         if jacobi_relaxation is not None:
             dmu = jacobi_relaxation * dmu
         new = clamp_ropes(blk, mu + dmu)
-        return f.J * (f.w * (new - mu)), new
+        return f.Jw * (new - mu), new
 
     def colour(p, blk, rows):
         qi, qj, new = update(p, blk, rows)
@@ -331,7 +342,7 @@ def shake_sweep(sys: System, fr0: tuple, h, tol=0.0):
         live = (f0.k > 0) & (f.k > 0) & (along > 0) & (f0.alpha == 0)
         floor = 0.5 * jnp.sqrt(f.s * f0.s)
         new = clamp_ropes(blk, mu + jnp.where(live, f.C / jnp.where(live, jnp.maximum(along, floor), 1), 0))
-        q = f0.J * (f0.w * (new - mu))
+        q = f0.Jw * (new - mu)
         return (L.add_rows(topo, blk, x, q), L.add_rows(topo, blk, v, q / h)), new
 
     def sweep(_, carry):

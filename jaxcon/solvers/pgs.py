@@ -198,10 +198,12 @@ class PGS(Solver):
             new = clamp_ropes(blk, lam + row_solve(topo, blk, f, R.rel(topo, blk, f, v) + b, lam, g))
             return R.apply(topo, blk, f, v, new - lam), new
 
+        springs = tuple(gamma(f, h) for f in fr)          # once per (sub)step, outside the sweeps
+
         def sweep(v, lam):
             lam = list(lam)
-            for c, (blk, f, b) in enumerate(zip(topo.blocks, fr, bias)):
-                v, lam[c] = L.each_colour(blk, colour, v, (f, b, gamma(f, h), lam[c]))
+            for c, (blk, f, b, g) in enumerate(zip(topo.blocks, fr, bias, springs)):
+                v, lam[c] = L.each_colour(blk, colour, v, (f, b, g, lam[c]))
             return v, tuple(lam)
         return sweep
 
@@ -221,7 +223,7 @@ class PGS(Solver):
             return tuple(R.rel(topo, blk, f, u) for blk, f in zip(topo.blocks, fr))
 
         def matvec(l):          # (J M^-1 J^T + gamma) l, gamma for a set's compliant rows
-            return tuple(-r if g is None else g * li - r
+            return tuple(-r if g is None else g.g * li - r
                          for r, g, li in zip(relative(apply_impulses(sys, zero_v, fr, l)), gs, l))
 
         def solve(_, rhs, guess=lax.stop_gradient(lam0)):
