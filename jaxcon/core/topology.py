@@ -277,8 +277,8 @@ def lattice_colouring(rows: np.ndarray, view: tuple, most: Optional[int] = None)
     a lattice's cells): rows with the same offsets between their particles form a group, and a group's row at
     grid position p gets the class of p modulo q, with q the smallest vector (by the number of classes) such that
     no two rows of one class share a particle (no difference of two of the stencil's offsets is 0 modulo q).
-    Each class is a colour, groups one after another. Returns None when a row repeats a particle, a group would
-    need more than `_LATTICE_MAX` classes, or the colours would be more than `most`."""
+    Each class is a colour, groups one after another. Returns None when a row repeats a particle, two rows are the
+    same, a group would need more than `_LATTICE_MAX` classes, or the colours would be more than `most`."""
     import itertools
 
     m, k = rows.shape
@@ -301,6 +301,8 @@ def lattice_colouring(rows: np.ndarray, view: tuple, most: Optional[int] = None)
         q = min((q for q in itertools.product(*[range(1, e + 2) for e in ext])
                  if np.all(np.any(d % np.asarray(q) != 0, axis=1))), key=lambda q: (int(np.prod(q)), q))
         sel = np.flatnonzero(group == g)
+        if len(np.unique(rows[sel, 0])) != len(sel):                    # the same row twice: no class keeps
+            return None                                                  # the two apart
         cls = np.ravel_multi_index(tuple((coords[sel, 0] % np.asarray(q)).T), q)
         used, inv = np.unique(cls, return_inverse=True)
         colour[sel] = base + inv.reshape(-1)
