@@ -382,8 +382,8 @@ def build(
       layout: 'compact' (every colour in one table whose rows a sweep visits in a loop: gradients compile 3
         to 4x faster, and run slower), 'unrolled' (one block per colour, each compiled separately: the fastest
         run time), or 'auto' (default): compact with at least 4 colours and at most 256 constraints in any
-        colour, such as a 16x16 cloth, or with more than 12 colours whatever their size (the unrolled layout's
-        compile time grows with its colours). Static. Results agree to rounding (docs/performance.md). A
+        colour, or with more than 12 colours (compile time grows with the colours); constraint sets likewise
+        (docs/constraints.md). Static. Results agree to rounding (docs/performance.md). A
         particle with 9 or more constraints is a hub, whose constraints are solved together (docs/solvers.md,
         "Hubs"); constraints that share only a fixed particle may share a colour.
       dtype: float dtype of the model and state. None: the dtype of `positions` when it is a floating-point

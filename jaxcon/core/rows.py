@@ -43,16 +43,17 @@ class SetFrame(NamedTuple):
 
 
 class SetSystem(NamedTuple):
-    """A set's leaves in its block's table layout, row axes last: params {name: [..., C, W]}, compliance [C, W].
-    The function and kind are static, on the model's `Constraint`."""
+    """A set's leaves in one of its blocks' layout, row axes last: params {name: [..., *block.shape]} and
+    compliance [*block.shape] (a table's [C, W], or a colour of its own's [size]). The function and kind are
+    static, on the model's `Constraint`."""
 
     params: dict
     compliance: Array
 
 
 def set_system(con, block, first: int, dtype) -> SetSystem:
-    """`con`'s parameters and compliance in the table layout of its `block` (the set's constraints start at
-    user constraint index `first`)."""
+    """`con`'s parameters and compliance in the layout of one of its blocks (a table or a colour of its own; the
+    set's constraints start at user constraint index `first`)."""
     local = np.where(block.real.array, block.src.array - first, con.m).astype(np.int32)
 
     def table(a):
@@ -154,15 +155,6 @@ def apply(topo, block, f, v, dlam):
         return L.add_rows(topo, block, v, f.Jw * dlam)
     p = f.n * dlam
     return L.add_pair(topo, block, v, f.wi * p, -f.wj * p)
-
-
-def value_at(topo, block, con, ssys: SetSystem, x):
-    """The rows' C_lib at positions x [dim, *view] (no gradient work; 0 where not finite)."""
-    xg = jnp.swapaxes(L.gather_rows(topo, block, x), 0, 1)                         # [k, dim, *rows]
-    rows = xg.shape[2:]
-    pf = jax.tree.map(lambda a: a.reshape(a.shape[: a.ndim - len(rows)] + (-1,)), ssys.params)
-    C = jax.vmap(con.fn, in_axes=(-1, -1))(xg.reshape(xg.shape[:2] + (-1,)), pf).reshape(rows)
-    return -jnp.where(jnp.isfinite(C), C, 0)
 
 
 def compliant(f) -> Optional[Array]:

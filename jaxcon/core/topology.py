@@ -261,7 +261,9 @@ def _set_colour(rows: np.ndarray, view: tuple, fixed: np.ndarray) -> SetColour:
     free = ~fixed[flat]
     # a colour never holds a free particle twice: rows name distinct particles, and the colourings keep rows
     # that share a free particle apart
-    assert len(np.unique(flat[free])) == int(free.sum()), "a colour shares a free particle"
+    if len(np.unique(flat[free])) != int(free.sum()):      # the write-back gather would drop a contribution
+        raise RuntimeError("topology: a constraint set's colour holds a free particle twice (an internal error; "
+                           "please report it with the set's particles)")
     src = np.full(len(fixed), k * size, np.int32)
     src[flat[free]] = np.flatnonzero(free)
     return SetColour(size, StaticArray(rows.T.astype(np.int32)), boxes, StaticArray(src))
@@ -579,7 +581,10 @@ class Topology:
             groups, unroll = None, self._unrolls(np.bincount(colour))
             if unroll:
                 groups = self._set_colours(internal, colour, fixed)
-                lattice = lattice_colouring(internal, self.view, int(colour.max()) + 1) if info.k > 1 else None
+                # on the user's grid positions: the parity split (`pos`) permutes a row, so translates there are
+                # not translates internally; the boxes are checked on the internal positions
+                lattice = (lattice_colouring(info.particles, self.view, int(colour.max()) + 1) if info.k > 1
+                           else None)
                 if lattice is not None:
                     tried = self._set_colours(internal, lattice, fixed)
                     if all(c.boxes is not None for c, _ in tried):
@@ -621,9 +626,10 @@ class Topology:
         self.blocks, self.perm, self.inv_perm = tuple(blocks), perm, inv_perm
 
     def _unrolls(self, sizes) -> bool:
-        """Whether a constraint set with colours of these sizes is swept unrolled: never in the compact layout or
-        beyond `UNROLLED_MAX_COLOURS` colours; always in the unrolled one; by default unless it is small with
-        several colours (`COMPACT_MIN_COLOURS`, `COMPACT_MAX_WIDTH`), as for rods."""
+        """Whether a constraint set with colours of these sizes gets a block per colour: never in the compact
+        layout, nor with more than `UNROLLED_MAX_COLOURS` colours (each colour's code is compiled apart); else
+        always in the unrolled layout, and by default unless it is small with several colours
+        (`COMPACT_MIN_COLOURS`, `COMPACT_MAX_WIDTH`), as for rods."""
         if self._layout == "compact" or len(sizes) > UNROLLED_MAX_COLOURS:
             return False
         return self._layout == "unrolled" or not (len(sizes) >= COMPACT_MIN_COLOURS
@@ -653,7 +659,7 @@ class Topology:
             kinds += f", {int(self.star.max()) + 1} hub stars"
         for info in self.sets:
             kinds += f", {info.m} {info.name}"
-        strided = sum(b.strided for b in self.blocks)
+        strided = sum(b.strided or (b.unrolled is not None and b.unrolled.boxes is not None) for b in self.blocks)
         if self.compact:
             tab = next(b for b in self.blocks if b.table)
             return (f"Topology(n={self.n}, dim={self.dim}, {kinds}, {self.n_colours} colours (compact: one "

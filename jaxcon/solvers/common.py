@@ -340,7 +340,8 @@ def shake_sweep(sys: System, fr0: tuple, h, tol=0.0):
         f = R.set_frame(topo, blk, sys.cons[blk.generic], ssys, x, sys.w)
         along = jnp.sum(f.w * jnp.sum(f.J * f0.J, axis=0), axis=0)
         live = (f0.k > 0) & (f.k > 0) & (along > 0) & (f0.alpha == 0)
-        floor = 0.5 * jnp.sqrt(f.s * f0.s)
+        ss = f.s * f0.s                  # 0 where a row has no gradient: sqrt's derivative there is infinite
+        floor = 0.5 * jnp.sqrt(jnp.where(ss > 0, ss, 1)) * (ss > 0).astype(ss.dtype)
         new = clamp_ropes(blk, mu + jnp.where(live, f.C / jnp.where(live, jnp.maximum(along, floor), 1), 0))
         q = f0.Jw * (new - mu)
         return (L.add_rows(topo, blk, x, q), L.add_rows(topo, blk, v, q / h)), new
