@@ -222,8 +222,7 @@ def add_rows(topo: Topology, block, v, p):
         if col.boxes is not None:
             pads = [_box_pad(p[..., s, :].reshape(lead + b[2]), b, topo.view) for s, b in enumerate(col.boxes)]
             return v + functools.reduce(jnp.add, pads)
-        flat = jnp.concatenate([p.reshape(lead + (-1,)), jnp.zeros(lead + (1,), p.dtype)], axis=-1)
-        return v + jnp.take(flat, col.src.array, axis=-1).reshape(lead + topo.view)
+        return v + _gather_back(topo, [p.reshape(lead + (-1,))], col.src.array)
     p = p * block.real.array.astype(p.dtype)
     return _flat(topo, v).at[..., block.i_idx.array].add(p).reshape(v.shape)
 
@@ -320,10 +319,16 @@ def scatter_pair(topo: Topology, block: Block, p_i, p_j):
         return add_pair(topo, block, jnp.zeros(lead + topo.view, p_i.dtype), p_i, p_j)
     if block.strided:
         return _box_pad(p_i, block.i_box, topo.view) + _box_pad(p_j, block.j_box, topo.view)
-    lead = p_i.shape[:-1]
-    zero = jnp.zeros(lead + (1,), p_i.dtype)
-    flat = jnp.take(jnp.concatenate([p_i, p_j, zero], axis=-1), block.src.array, axis=-1)
-    return flat.reshape(lead + topo.view)
+    return _gather_back(topo, [p_i, p_j], block.src.array)
+
+
+def _gather_back(topo: Topology, parts, src):
+    """Per-particle array [..., *view] from contributions `parts` (arrays [..., P_a], concatenated): particle q
+    takes entry src[q] of them, or 0 where src[q] is past their end. The write-back of a colour whose particles
+    each appear once (a gather block, a set's colour of its own), a gather instead of a scatter-add."""
+    lead = parts[0].shape[:-1]
+    flat = jnp.concatenate(list(parts) + [jnp.zeros(lead + (1,), parts[0].dtype)], axis=-1)
+    return jnp.take(flat, src, axis=-1).reshape(lead + topo.view)
 
 
 def _slice_of_pad(p, pad_box, read_box):

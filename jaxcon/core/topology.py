@@ -274,7 +274,7 @@ _LATTICE_MAX = 64
 
 
 def lattice_colouring(rows: np.ndarray, view: tuple, most: Optional[int] = None) -> Optional[np.ndarray]:
-    """A colouring of constraints of any arity (rows [m, k], internal flat particle indices of the grid `view`)
+    """A colouring of constraints of any arity (rows [m, k], flat particle indices of the grid `view`, row-major)
     whose colours are strided boxes where the rows are translates of a few stencils (a cloth's edges, its hinges,
     a lattice's cells): rows with the same offsets between their particles form a group, and a group's row at
     grid position p gets the class of p modulo q, with q the smallest vector (by the number of classes) such that
@@ -578,17 +578,17 @@ class Topology:
         for s_id, info in enumerate(self.sets):
             internal = to_internal[info.particles]
             colour = greedy_colouring_any(info.particles, self.n, self.fixed)
-            groups, unroll = None, self._unrolls(np.bincount(colour))
-            if unroll:
-                groups = self._set_colours(internal, colour, fixed)
+            groups = None
+            if self._unrolls(np.bincount(colour)):
                 # on the user's grid positions: the parity split (`pos`) permutes a row, so translates there are
                 # not translates internally; the boxes are checked on the internal positions
                 lattice = (lattice_colouring(info.particles, self.view, int(colour.max()) + 1) if info.k > 1
                            else None)
-                if lattice is not None:
-                    tried = self._set_colours(internal, lattice, fixed)
-                    if all(c.boxes is not None for c, _ in tried):
-                        colour, groups = lattice, tried
+                tried = None if lattice is None else self._set_colours(internal, lattice, fixed)
+                if tried is not None and all(c.boxes is not None for c, _ in tried):
+                    colour, groups = lattice, tried
+                else:
+                    groups = self._set_colours(internal, colour, fixed)
             if groups is not None:                          # one block per colour, read and written directly
                 for sc, rows in groups:
                     src = (first + rows).astype(np.int32)
