@@ -358,17 +358,27 @@ def shake_sweep(sys: System, fr0: tuple, h, tol=0.0):
     return sweep
 
 
-# ---- the start and end of a velocity-level (sub)step with contacts (PGS, Jacobi) ------------------------------
+# ---- the (sub)step of every solver: the rows of every kind, contacts among them ----------------------------------
+# A solver writes one (sub)step, `substep(x, v, lam_ws, h, found=None)`, and runs it through `run_substeps`. The
+# contact kind's stages (its rows and warm start in `step_begin`, its sweep beside the constraint colours, the
+# restitution phases of `solve_phases`, the time-of-impact correction and position pass of `step_end`) are
+# no-ops for a model without contacts, which then computes what it computed before contacts existed.
 #: Solves a grid model's step may take (`grid_step`): the first, and one again with the pairs it missed.
 GRID_ATTEMPTS = 2
 
 
-def contact_substepped(sys, substep, substeps: int, x, v, lam, dt):
-    """`substepped` for a model with contacts, `substep(x, v, lam_ws, h, found=None)`: through `grid_substepped`
-    where the model's pairs come from a neighbour grid."""
-    if sys.contact.ct.has_grid:
+def run_substeps(sys, substep, substeps: int, x, v, lam, dt):
+    """`substepped` for any model, `substep(x, v, lam_ws, h, found=None)`: through `grid_substepped` where the
+    model's pairs come from a neighbour grid."""
+    if sys.contact is not None and sys.contact.ct.has_grid:
         return grid_substepped(sys, substep, substeps, x, v, lam, dt)
     return substepped(substep, substeps, x, v, lam, dt)
+
+
+def with_contacts(sys, lam, imp):
+    """A (sub)step's impulses as the solvers carry them: the constraint blocks' `lam`, paired with the contact
+    `Impulses` where the model has contacts."""
+    return lam if sys.contact is None else (lam, imp)
 
 
 def grid_substepped(sys, substep, substeps: int, x, v, lam, dt):
@@ -450,32 +460,51 @@ def grid_step(sys, x, v, dt, solve, substeps: int = 1):
     return lax.fori_loop(0, GRID_ATTEMPTS, attempt, found + (out, jnp.ones((), bool)))[2]
 
 
-def contact_begin(sys, x, v, lam_ws, beta, h, split, warm: bool, factor=1.0, gradient: bool = True,
-                  found=None, contact_slop=0.0):
-    """Gravity, the rods' frames and biases (`split`: split impulses' slop share, or None), the contact rows (which
-    keep `contact_slop` of overlap, `contact.rows`), and the warm start of rods and contacts (scaled by `factor`;
-    no gradient through it unless `gradient`). A grid model
-    passes its candidate pairs `found` = (partners, overflow) (`grid_step`).
-    Returns (v_free, v, fr, bias, obs, pairs, lam, imp, slop): v_free is the velocity after gravity, before any
-    impulse (what the time-of-impact correction compares with); slop: split impulses' (`split_slop`) or None."""
+class Begin(NamedTuple):
+    """What `step_begin` prepares: v_free, the velocity after gravity and before any impulse (what the
+    time-of-impact correction compares with); v after the warm start; the constraint frames `fr`, biases and
+    impulses `lam`; the contact rows `obs` and `pairs` and impulses `imp` (None without contacts); split
+    impulses' slop (`split_slop`) or None."""
+    v_free: Any
+    v: Any
+    fr: tuple
+    bias: tuple
+    obs: Any
+    pairs: Any
+    lam: tuple
+    imp: Any
+    slop: Any
+
+
+def step_begin(sys, x, v, lam_ws, beta, h, split, warm: bool, factor=1.0, gradient: bool = True,
+               found=None, contact_slop=0.0) -> Begin:
+    """Gravity, the constraints' frames and biases (`split`: split impulses' slop share, or None), the contact
+    rows (which keep `contact_slop` of overlap, `contact.rows`) where the model has contacts, and the warm start
+    of every row (scaled by `factor`; no gradient through it unless `gradient`). `lam_ws` is what the solver
+    carries (`with_contacts`). A grid model passes its candidate pairs `found` = (partners, overflow)
+    (`grid_step`)."""
     topo, cs = sys.topology, sys.contact
-    lam_ws, imp_ws = lam_ws
+    lam_ws, imp_ws = (lam_ws, None) if cs is None else lam_ws
     v0, v = v, sys.apply_gravity(v, h)
-    v_free = v
     fr = frames(sys, x)
     slop = None if split is None else split_slop(sys, fr, v, h, beta, split)
     bias = velocity_bias(topo, fr, beta, h, slop)
-    partners = None if found is None else found[0]
-    obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h, partners, contact_slop)
+    v_free = v
+    obs = pairs = imp = None
+    if cs is not None:
+        obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h, None if found is None else found[0], contact_slop)
     if not warm:
-        lam, imp = tuple(jnp.zeros_like(f.C) for f in fr), contact.zero_impulses(topo, cs.ct, x.dtype)
+        lam = tuple(jnp.zeros_like(f.C) for f in fr)
+        if cs is not None:
+            imp = contact.zero_impulses(topo, cs.ct, x.dtype)
     else:
-        if not gradient:
-            imp_ws = lax.stop_gradient(imp_ws)
         v, lam = warm_start(sys, v, fr, lam_ws, h, factor, gradient)
-        v, imp = contact.warm_start(cs, sys.w, v, obs, pairs, imp_ws, factor)
-    imp = with_found(imp, found)
-    return v_free, v, fr, bias, obs, pairs, lam, imp, slop
+        if cs is not None:
+            v, imp = contact.warm_start(cs, sys.w, v, obs, pairs, imp_ws if gradient else lax.stop_gradient(imp_ws),
+                                        factor)
+    if cs is not None:
+        imp = with_found(imp, found)
+    return Begin(v_free, v, fr, bias, obs, pairs, lam, imp, slop)
 
 
 def with_found(imp, found):
@@ -484,12 +513,16 @@ def with_found(imp, found):
     return imp if found is None else imp._replace(partners=found[0], overflow=found[1])
 
 
-def restitution_phases(sys, v_free, obs, pairs, iterations: int, carry, body):
-    """The contact solve in two phases sharing `iterations` (at least one each): compression (every target
-    without restitution), then restitution, continued from it; the restitution phase's change is scaled back
-    where it would raise the kinetic energy (contact.restitution_scale). `body(obs, pairs)` returns one
-    iteration, carry = (v, ...) -> carry. One loop, whose rows switch targets between the phases, so the
-    iteration is traced and compiled once. Returns the carry mixed leaf by leaf."""
+def solve_phases(sys, v_free, obs, pairs, iterations: int, carry, body):
+    """The velocity solve, `iterations` of `body(obs, pairs)`, which returns one iteration carry = (v, ...) ->
+    carry. A model without contacts runs them in one loop. With contacts it runs in two phases sharing the
+    iterations (at least one each): compression (every target without restitution), then restitution,
+    continued from it; the restitution phase's change is scaled back where it would raise the kinetic energy
+    (contact.restitution_scale). One loop, whose rows switch targets between the phases, so the iteration is
+    traced and compiled once. Returns the carry mixed leaf by leaf."""
+    if sys.contact is None:
+        one_iteration = body(None, None)
+        return lax.fori_loop(0, iterations, lambda _, c: one_iteration(c), carry)
     first = max(iterations // 2, 1)
     total = first + max(iterations - first, 1)
 
@@ -512,12 +545,15 @@ def restitution_phases(sys, v_free, obs, pairs, iterations: int, carry, body):
     return jax.tree.map(mix, compressed, bounced)
 
 
-def contact_end(sys, x, v, v_free, obs, pairs, imp, h, passes=1, rods_pass=None, contact_slop=0.0):
-    """New positions: x + h v with the time-of-impact correction (a particle whose velocity changed at tau within
-    the step moved at its old velocity until then: x' = x + tau v_free + (h - tau) v'), then `rods_pass` (split
-    impulses' position pass of the rods, x -> x, or None), then the position safety pass of the contacts
-    (`passes`, `contact_slop`: see contact.project_overlaps)."""
+def step_end(sys, x, v, v_free, obs, pairs, imp, h, passes=1, rods_pass=None, contact_slop=0.0):
+    """New positions: x + h v, with contacts the time-of-impact correction (a particle whose velocity changed at
+    tau within the step moved at its old velocity until then: x' = x + tau v_free + (h - tau) v'), then
+    `rods_pass` (split impulses' position pass of the constraints, x -> x, or None), then the position safety
+    pass of the contacts (`passes`, `contact_slop`: see contact.project_overlaps)."""
     cs = sys.contact
+    if cs is None:
+        x = x + h * v
+        return x if rods_pass is None else rods_pass(x)
     dx = -contact.impact_times(cs, obs, pairs, imp, x.shape) * (v - v_free)
     x = x + h * v + dx
     if rods_pass is not None:

@@ -515,12 +515,57 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None, slop=0.0):
     return obs, pairs
 
 
-def _solve_row(vrel, f: Rows, mu, ln, lt):
-    """One contact row: normal impulse (clamped >= 0), then friction (clamped to the disc mu lam_n). Returns
-    (impulse change P [dim, ...] on the second body, new lam_n, new lam_t)."""
-    vn = _dot(vrel, f.n)
-    new_n = jnp.maximum(ln + (f.target - vn) * f.k, 0)
+def _solve_row(vrel, f: Rows, mu, ln, lt, soft=None):
+    """One contact row, the velocity-level update every sequential-impulse solver uses: normal impulse
+    lam_n += k (target - vn), clamped >= 0, then friction (clamped to the disc mu lam_n). `soft` =
+    (mass_scale, impulse_scale), each of the rows' shape, makes it a soft row (SoftStep, `soft_rows`):
+    lam_n += mass_scale k (target - vn) - impulse_scale lam_n. Returns (impulse change P [dim, ...] on the
+    second body, new lam_n, new lam_t)."""
+    if soft is None:
+        vn = _dot(vrel, f.n)
+        new_n = jnp.maximum(ln + (f.target - vn) * f.k, 0)
+    else:
+        mass_scale, impulse_scale = soft
+        vn = jnp.sum(vrel * f.n, 0)
+        new_n = jnp.maximum(ln + mass_scale * f.k * (f.target - vn) - impulse_scale * ln, 0)
     return finish_row(vrel, f, mu, ln, new_n, lt)
+
+
+# SoftStep's contacts, Box2D v3 style (Erin Catto, "Solver2D", 2024; box2d/src/contact_solver.c).
+#
+# The rows are PGS's (`rows` with no Baumgarte term): speculative contacts, swept time of
+# impact and restitution. Per substep of length h:
+#
+# * **Solve** (with bias, one Gauss-Seidel sweep after the rods): a separated contact (C > 0: speculative, or an
+#   impact within the substep) is rigid, with its row's target. A touching or overlapping one (C <= 0) is a soft
+#   constraint that pushes the overlap out like a spring-damper of `contact_hertz` and `contact_damping_ratio`:
+#   target min(-bias_rate C, push_velocity), the update scaled by mass_scale and softened by
+#   -impulse_scale lam_n (Box2D's b2MakeSoft coefficients; obstacles, Box2D's static bodies, at twice the
+#   hertz), with no restitution, as Box2D. One difference from Box2D: an impact within the substep keeps its
+#   row's bounce target here already (Box2D bounces only after relaxing), so that the time-of-impact correction
+#   moves the particle on its bounced velocity for the rest of the substep, as PGS does.
+# * positions x += h v, with PGS's time-of-impact correction.
+# * **Relax** (without bias): every row rigid with its row's target, which for touching contacts is
+#   max(e u + dv, 0): the push-out velocity is removed and restitution is applied here (Box2D applies it after
+#   the relax iterations, to contacts whose approach speed exceeded the threshold; a row with a positive target
+#   does the same within the relax sweeps).
+#
+# Friction is rigid in both stages (as Box2D's), clamped to mu lam_n.
+
+
+def soft_rows(rows: Optional[Rows], soft, push_velocity):
+    """SoftStep's solve-stage rows and their softness (Box2D v3's soft contacts): (rows, (mass_scale,
+    impulse_scale)), each of the rows' shape. Touching or overlapping rows (gap <= 0, or within rounding of
+    touching and no impact: `_gap`) get the push-out target min(-bias_rate C, push_velocity) and the soft
+    coefficients `soft` = (bias_rate, mass_scale, impulse_scale); separated rows, and impacts, stay rigid."""
+    if rows is None:
+        return None, None
+    bias_rate, mass_scale, impulse_scale = soft
+    touching = (rows.gap <= 0) | (rows.near & (rows.toi == 0))
+    target = jnp.where(touching, jnp.minimum(-bias_rate * rows.gap, push_velocity), rows.target)
+    one = jnp.ones_like(rows.gap)
+    return rows._replace(target=target), (jnp.where(touching, mass_scale * one, one),
+                                          jnp.where(touching, impulse_scale * one, 0 * one))
 
 
 def finish_row(vrel, f: Rows, mu, ln, new_n, lt):
@@ -543,14 +588,15 @@ def _pair_apply(ct, v, r, wi, wj, P):
     return v + jnp.take(jnp.concatenate([-wi * P, wj * P, zero], -1), src, axis=-1)
 
 
-def sweep(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, imp: Impulses, row=None, extra=(None, None)):
+def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impulses, soft=(None, None)):
     """One Gauss-Seidel pass over every contact: obstacles one after another (each over all particles at
-    once), then the pair rounds in a loop. Returns (v, imp).
+    once), then the pair rounds in a loop (a grid model's slots: `grid_pass`). Returns (v, imp); a model
+    without contacts (`cs` None) returns them unchanged.
 
-    `row(vrel, f, mu, lam_n, lam_t, extra) -> (P, lam_n, lam_t)` solves one row (default `_solve_row`);
-    `extra` = (per-obstacle, per-pair) tuples of arrays handed to it, row by row (SoftStep's soft
-    coefficients), or None."""
-    row = row or (lambda vrel, f, mu, ln, lt, _: _solve_row(vrel, f, mu, ln, lt))
+    `soft` = (obstacle softness, pair softness): SoftStep's (mass_scale, impulse_scale) per row
+    (`soft_rows`), each None for rigid rows (`_solve_row`)."""
+    if cs is None:
+        return v, imp
     pick = lambda group, k: None if group is None else tuple(None if a is None else a[k] for a in group)  # noqa
     ct, mu = cs.ct, cs.friction
     on, ot = imp.obs_n, imp.obs_t
@@ -558,12 +604,12 @@ def sweep(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, imp: Impulses, row=No
         on, ot = list(on), list(ot)
         for q in range(ct.n_obstacles):
             f = Rows(*pick(obs, q))
-            P, on[q], ot[q] = row(v, f, mu, on[q], ot[q], pick(extra[0], q))
+            P, on[q], ot[q] = _solve_row(v, f, mu, on[q], ot[q], pick(soft[0], q))
             v = v + w * P
         on, ot = jnp.stack(on), jnp.stack(ot)
     pn, pt = imp.pair_n, imp.pair_t
     if pairs is not None and pairs.i is not None:
-        v, pn, pt = grid_pass(cs, w, v, pairs, pn, pt, row, extra[1])
+        v, pn, pt = grid_pass(cs, w, v, pairs, pn, pt, soft[1])
     elif pairs is not None:
         dim, shape = v.shape[0], v.shape
         ia, ja = jnp.asarray(ct.i.array), jnp.asarray(ct.j.array)
@@ -573,7 +619,7 @@ def sweep(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, imp: Impulses, row=No
             vf, pn, pt = carry
             i, j = ia[r], ja[r]
             f = Rows(pairs.n[:, r], *pick(pairs[1:], r))
-            P, ln, lt = row(vf[:, j] - vf[:, i], f, mu, pn[r], pt[:, r], pick(extra[1], r))
+            P, ln, lt = _solve_row(vf[:, j] - vf[:, i], f, mu, pn[r], pt[:, r], pick(soft[1], r))
             vf = _pair_apply(ct, vf, r, wf[i], wf[j], P)
             return vf, pn.at[r].set(ln), pt.at[:, r].set(lt)
 
@@ -592,11 +638,11 @@ def slot_major(a):
     return None if a is None else jnp.moveaxis(a, -1, 0)
 
 
-def grid_pass(cs: ContactSystem, w, v, pairs: Rows, pn, pt, row=None, extra=None):
+def grid_pass(cs: ContactSystem, w, v, pairs: Rows, pn, pt, soft=None):
     """One pass over a grid model's pair rows, slot by slot: the rows of one slot (one per particle, whose
     partners may repeat) are solved together from the same v, relaxed by mass splitting (each takes the
     effective mass 1 / (c_i w_i + c_j w_j), c the slot's rows that push at each particle, as
-    jaxcon.solvers.contact_jacobi does), and the slots follow one another Gauss-Seidel-style, a `lax.scan`
+    `jacobi_pass` does), and the slots follow one another Gauss-Seidel-style, a `lax.scan`
     over the slots (slot-major copies of the rows, `slot_major`). A slot no row uses (the grid fills each
     particle's slots from the first, so the last ones are often empty everywhere) is skipped (`lax.cond`: the
     same values and derivatives). Returns (v, pair_n, pair_t)."""
@@ -613,18 +659,76 @@ def grid_pass(cs: ContactSystem, w, v, pairs: Rows, pn, pt, row=None, extra=None
             act = (((ln > 0) | (ln + (f.target - vn) * f.k > 0)) & (f.k > 0)).astype(vf.dtype)
             c = act + jnp.zeros_like(act).at[j].add(act)
             g = f._replace(k=L.safe_reciprocal(c * wf + c[j] * wf[j]) * (f.k > 0).astype(vf.dtype))
-            if row is None:
-                P, new_n, new_t = _solve_row(vrel, g, cs.friction, ln, lt)
-            else:
-                P, new_n, new_t = row(vrel, g, cs.friction, ln, lt, ex)
+            P, new_n, new_t = _solve_row(vrel, g, cs.friction, ln, lt, ex)
             return vf.at[:, j].add(wf[j] * P) - wf * P, (new_n, new_t)
 
         return lax.cond(jnp.any(f.k > 0), solve, lambda vf: (vf, (ln, lt)), vf)
 
     xs = (Rows(*(slot_major(a) for a in pairs)), slot_major(pn), slot_major(pt),
-          None if extra is None else tuple(slot_major(a) for a in extra))
+          None if soft is None else tuple(slot_major(a) for a in soft))
     vf, (pn, pt) = lax.scan(one_slot, v.reshape(dim, -1), xs)
     return vf.reshape(shape), jnp.moveaxis(pn, 0, -1), jnp.moveaxis(pt, 0, -1)
+
+
+def _obstacle_frame(obs: Rows):
+    """Obstacle rows with the dim axis first ([dim, Q, *view]), as `_solve_row` wants."""
+    return obs._replace(n=jnp.moveaxis(obs.n, 1, 0))
+
+
+def jacobi_counts(cs: Optional[ContactSystem], v, obs: Rows, pairs: Rows, imp: Impulses, base):
+    """Mass splitting's counts (`jacobi_pass`): `base` [1, *view] (the other rows at each particle) plus, per
+    particle, the contact rows that push on it in this iteration: those that hold an impulse, or whose
+    unrelaxed update from the velocities `v` would give one. `base` unchanged without contacts."""
+    if cs is None:
+        return base
+    ct, c = cs.ct, base
+    if obs is not None:
+        f = _obstacle_frame(obs)
+        vn = jnp.sum(v[:, None] * f.n, 0)
+        act = ((imp.obs_n > 0) | (imp.obs_n + (obs.target - vn) * obs.k > 0)) & (obs.k > 0)
+        c = c + jnp.sum(act.astype(c.dtype), 0)[None]
+    if pairs is not None:
+        ia, ja = pair_index(ct, pairs)
+        vf = v.reshape(v.shape[0], -1)
+        vn = jnp.sum((vf[:, ja] - vf[:, ia]).reshape(pairs.n.shape) * pairs.n, 0)
+        act = ((imp.pair_n > 0) | (imp.pair_n + (pairs.target - vn) * pairs.k > 0)) & (pairs.k > 0)
+        act = act.astype(c.dtype).reshape(-1)
+        flat = c.reshape(-1).at[ia].add(act).at[ja].add(act)
+        c = flat.reshape(c.shape)
+    return c
+
+
+def jacobi_pass(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impulses, count, relax):
+    """Every contact row updated from the same `v` (Jacobi), each by `_solve_row`: (dv, imp), dv 0 without
+    contacts. A row between particles i and j takes the effective mass 1 / (c_i w_i + c_j w_j) with the
+    per-particle counts `count` [1, *view] (mass splitting, `jacobi_counts`; an obstacle has no inverse mass:
+    1 / (c_i w_i)), or relax * k with a fixed relaxation (`count` None)."""
+    dv = jnp.zeros_like(v)
+    if cs is None:
+        return dv, imp
+    ct, mu = cs.ct, cs.friction
+    on, ot, pn, pt = imp[:4]
+    if obs is not None:
+        f = _obstacle_frame(obs)
+        k = relax * obs.k if count is None else L.safe_reciprocal(count * obs.winv) * (obs.k > 0).astype(v.dtype)
+        vrel = jnp.broadcast_to(v[:, None], f.n.shape)
+        P, on, ot = _solve_row(vrel, f._replace(k=k), mu, on, jnp.moveaxis(ot, 1, 0))
+        ot = jnp.moveaxis(ot, 0, 1)
+        dv = dv + w * jnp.sum(P, 1)
+    if pairs is not None:
+        index = pair_index(ct, pairs)
+        ia, ja = index
+        vf = v.reshape(v.shape[0], -1)
+        shape = pairs.k.shape
+        if count is None:
+            k = relax * pairs.k
+        else:
+            cf, wf = count.reshape(-1), w.reshape(-1)
+            k = L.safe_reciprocal(cf[ia] * wf[ia] + cf[ja] * wf[ja]).reshape(shape) * (pairs.k > 0).astype(v.dtype)
+        vrel = (vf[:, ja] - vf[:, ia]).reshape(pairs.n.shape)
+        P, pn, pt = _solve_row(vrel, pairs._replace(k=k), mu, pn, pt)
+        dv = dv + _pair_total(ct, w, P, -1.0, index).reshape(v.shape)
+    return dv, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
 
 def carry_slots(prev: Impulses, partners):
@@ -849,3 +953,179 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
         return lax.cond(carry[1], run, lambda x: (x, carry[1]), carry[0])
 
     return lax.fori_loop(0, passes, gated, (x, jnp.ones((), bool)))[0]
+
+
+# ---- contacts at position level (XPBD, Penalty) ------------------------------------------------------------
+# Contacts at position level, for XPBD (Mueller et al. 2020, "Detailed rigid body simulation with extended
+# position based dynamics"; Macklin et al. 2019, "Small steps in physics simulation").
+#
+# Per substep of length h, from positions x and predicted positions p = x + h (v + h g):
+#
+# * `position_pass` (once per solver iteration, after the rod and rope colours): every contact with gap C(p) is a
+#   rigid (compliance 0) unilateral constraint. Its position multiplier lam_n (kg m, accumulated over the
+#   iterations, clamped >= 0) changes by -C / (w_i + w_j): an overlap is pushed out, and a contact pushed out
+#   too far by an earlier row gives some of it back. Then **static friction**: the relative tangential
+#   displacement of the two bodies over the substep, dx_t, is cancelled (lam_t -= dx_t / (w_i + w_j)) when the
+#   resulting |lam_t| <= mu lam_n; otherwise nothing is added (the kinetic part is the velocity pass's), and a
+#   lam_t left above a cone that shrank is scaled back onto it. Obstacles are solved one after another, each
+#   for all particles at once; pairs round by round (a loop over the rounds, as `sweep`), a grid
+#   model's pairs slot by slot (`_grid_project`).
+# * `position_velocity_pass` (once, after v = (p - x) / h): each contact with lam_n > 0 gets one velocity row, solved by
+#   `sweep` starting from the position impulses lam / h: the normal velocity is set to
+#   max(-e vn_before, 0) (restitution; vn_before is the normal relative velocity at the start of the substep
+#   after gravity, e = 0 when |vn_before| <= the restitution threshold), with the total normal impulse of the
+#   substep kept >= 0, then **dynamic friction** removes the tangential relative velocity with a total friction
+#   impulse clamped to the Coulomb disc mu * (total normal impulse). Where the velocity row adds no normal impulse
+#   and static friction did not hold, that is Mueller et al.'s eq. 30, |dv_t| = min(mu lam_n / h (w_i + w_j),
+#   |v_t|); the clamp on the total makes every reported impulse satisfy |lam_t| <= mu lam_n.
+#
+# The substep's reported impulses (N s) are the velocity pass's totals: lam / h plus the velocity rows.
+
+
+def obstacle_gap(cs: ContactSystem, q: int, p, x=None):
+    """(unit normal [dim, *view], gap [*view]) of every particle at `p` against obstacle q (planes first).
+    With the substep's start positions `x`, a particle that started inside a sphere keeps the normal it had
+    there (`overlap_normal`)."""
+    dim, nview = p.shape[0], p.ndim - 1
+    r = cs.radius[0]
+    if q < cs.ct.n_planes:
+        nrm = jnp.broadcast_to(cs.plane_normal[q].reshape((dim,) + (1,) * nview), p.shape)
+        return nrm, jnp.sum(nrm * p, 0) - cs.plane_offset[q] - r
+    s = q - cs.ct.n_planes
+    c = cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
+    if x is not None:
+        return overlap_normal(x - c, p - c, cs.sphere_radius[s] + r)
+    dist, nrm = direction(p - c)
+    return nrm, dist - cs.sphere_radius[s] - r
+
+
+def _pair_gap(cs: ContactSystem, pf, r, xf):
+    """(unit normal [dim, S] from i to j, gap [S]) of pair round r at flat positions pf [dim, n], the substep
+    having started at xf (`overlap_normal`)."""
+    ct = cs.ct
+    i, j = jnp.asarray(ct.i.array)[r], jnp.asarray(ct.j.array)[r]
+    return overlap_normal(xf[:, j] - xf[:, i], pf[:, j] - pf[:, i], cs.radius_flat[i] + cs.radius_flat[j])
+
+
+def _position_row(disp, n, C, k, mu, ln, lt):
+    """One contact at position level: normal multiplier (accumulated, >= 0), then static friction. `disp` is
+    the second body's displacement over the substep relative to the first, k = 1 / (w_i + w_j) (0: no row).
+    Returns (position impulse change P [dim, ...] on the second body, new lam_n, new lam_t)."""
+    new_n = jnp.maximum(ln - C * k, 0)
+    disp_t = disp - n * jnp.sum(disp * n, 0)
+    stick = lt - disp_t * k
+    limit = mu * new_n
+    length, _ = L.safe_length(stick)
+    held, inv = L.safe_length(lt)
+    kept = lt * jnp.where(held > limit, limit * inv, 1)
+    new_t = jnp.where(length <= limit, stick, kept)
+    return n * (new_n - ln) + (new_t - lt), new_n, new_t
+
+
+def position_pass(cs: ContactSystem, w, x, p, imp: Impulses, partners=None):
+    """One position-level pass over every contact (the section's comment above): obstacles, then the pair rounds (a grid
+    model's `partners` [n, K]: its slots, `_grid_project`). x: positions at the start of the substep, p:
+    current positions [dim, *view]; imp: position multipliers (kg m) accumulated in this substep. Returns
+    (p, imp)."""
+    ct, mu = cs.ct, cs.friction
+    on, ot = imp.obs_n, imp.obs_t
+    if ct.n_obstacles:
+        on, ot = list(on), list(ot)
+        k = L.safe_reciprocal(w[0])
+        for q in range(ct.n_obstacles):
+            n, C = obstacle_gap(cs, q, p, x)
+            P, on[q], ot[q] = _position_row(p - x, n, C, k, mu, on[q], ot[q])
+            p = p + w * P
+        on, ot = jnp.stack(on), jnp.stack(ot)
+    pn, pt = imp.pair_n, imp.pair_t
+    if ct.n_pairs:
+        dim, shape = p.shape[0], p.shape
+        ia, ja = jnp.asarray(ct.i.array), jnp.asarray(ct.j.array)
+        valid = jnp.asarray(ct.valid.array, p.dtype)
+        wf, xf = w.reshape(-1), x.reshape(dim, -1)
+
+        def one_round(r, carry):
+            pf, pn, pt = carry
+            i, j = ia[r], ja[r]
+            n, C = _pair_gap(cs, pf, r, xf)
+            disp = (pf[:, j] - xf[:, j]) - (pf[:, i] - xf[:, i])
+            k = L.safe_reciprocal(wf[i] + wf[j]) * valid[r]
+            P, ln, lt = _position_row(disp, n, C, k, mu, pn[r], pt[:, r])
+            pf = _pair_apply(ct, pf, r, wf[i], wf[j], P)
+            return pf, pn.at[r].set(ln), pt.at[:, r].set(lt)
+
+        pf, pn, pt = lax.fori_loop(0, ct.rounds, one_round, (p.reshape(dim, -1), pn, pt))
+        p = pf.reshape(shape)
+    elif ct.has_grid:
+        p, pn, pt = _grid_project(cs, w, x, p, partners, pn, pt)
+    return p, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
+
+
+def _grid_project(cs: ContactSystem, w, x, p, partners, pn, pt):
+    """`position_pass`'s pass over a grid model's pairs, slot by slot as `contact.grid_pass`: the rows of one slot
+    (one per particle, whose partners may repeat) are projected together from the same positions, relaxed by
+    mass splitting (k = 1 / (c_i w_i + c_j w_j), c the slot's rows at each particle that push or overlap), and
+    the slots follow one another in a `lax.scan`; a slot no particle uses is skipped. Returns (p, pair_n
+    [n, K], pair_t [dim, n, K])."""
+    dim, shape = p.shape[0], p.shape
+    wf, xf, r = w.reshape(-1), x.reshape(dim, -1), cs.radius_flat
+
+    def one_slot(pf, xs):
+        j, ln, lt = xs
+
+        def solve(pf):
+            jc = jnp.maximum(j, 0)
+            n, C = overlap_normal(xf[:, jc] - xf, pf[:, jc] - pf, r + r[jc])
+            disp = (pf[:, jc] - xf[:, jc]) - (pf - xf)
+            act = ((j >= 0) & ((C < 0) | (ln > 0))).astype(pf.dtype)
+            c = act + jnp.zeros_like(act).at[jc].add(act)
+            k = L.safe_reciprocal(c * wf + c[jc] * wf[jc]) * act
+            P, new_n, new_t = _position_row(disp, n, C, k, cs.friction, ln, lt)
+            return pf.at[:, jc].add(wf[jc] * P) - wf * P, (new_n, new_t)
+
+        return lax.cond(jnp.any(j >= 0), solve, lambda pf: (pf, (ln, lt)), pf)
+
+    xs = (slot_major(partners), slot_major(pn), slot_major(pt))
+    pf, (pn, pt) = lax.scan(one_slot, p.reshape(dim, -1), xs)
+    return pf.reshape(shape), jnp.moveaxis(pn, 0, -1), jnp.moveaxis(pt, 0, -1)
+
+
+def _bounce_target(cs: ContactSystem, vn_before):
+    """Restitution target of the velocity pass: max(-e vn_before, 0), e = 0 at or below the threshold."""
+    e = jnp.where(jnp.abs(vn_before) > cs.threshold, cs.restitution, 0)
+    return jnp.maximum(-e * vn_before, 0)
+
+
+def velocity_rows(cs: ContactSystem, w, p, v_before, imp: Impulses, partners=None):
+    """Velocity rows (obstacle Rows or None, pair Rows or None) at the end of the position solve: normals and
+    gaps at `p`, restitution targets from `v_before` (start of the substep, after gravity), and effective
+    masses only for contacts that pushed in this substep (lam_n > 0; the others get k = 0, no impulse). A grid
+    model's pair rows are its `partners`' slots [n, K]."""
+    ct, dim = cs.ct, p.shape[0]
+    obs = pairs = None
+    if ct.n_obstacles:
+        ns, Cs = zip(*(obstacle_gap(cs, q, p) for q in range(ct.n_obstacles)))
+        n, C = jnp.stack(ns), jnp.stack(Cs)
+        winv = jnp.broadcast_to(w[0], C.shape)
+        k = L.safe_reciprocal(winv) * (imp.obs_n > 0).astype(C.dtype)
+        obs = Rows(n, _bounce_target(cs, jnp.sum(n * v_before[None], 1)), k, winv, jnp.zeros_like(C), C)
+    if ct.n_pairs or ct.has_grid:
+        pf, vf, wf = p.reshape(dim, -1), v_before.reshape(dim, -1), w.reshape(-1)
+        ia, ja, valid, _ = pair_slots(ct, pf.shape[1], partners)
+        dist, n = direction(pf[:, ja] - pf[:, ia])
+        C = dist - cs.radius_flat[ia] - cs.radius_flat[ja]
+        winv = wf[ia] + wf[ja]
+        k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype) * (imp.pair_n > 0).astype(C.dtype)
+        vn = jnp.sum(n * (vf[:, ja] - vf[:, ia]), 0)
+        pairs = Rows(n, _bounce_target(cs, vn), k, winv, jnp.zeros_like(C), C)
+        if partners is not None:
+            pairs = pairs._replace(i=ia, j=partners)
+    return obs, pairs
+
+
+def position_velocity_pass(cs: ContactSystem, w, p, v_before, v, imp: Impulses, h, partners=None):
+    """Restitution and dynamic friction (the section's comment above) on v = (p - x) / h. `imp` holds the substep's
+    position multipliers (kg m). Returns (v, the substep's contact impulses in N s)."""
+    obs, pairs = velocity_rows(cs, w, p, v_before, imp, partners)
+    start = imp._replace(**{f: getattr(imp, f) / h for f in ("obs_n", "obs_t", "pair_n", "pair_t")})
+    return sweep(cs, w, v, obs, pairs, start)

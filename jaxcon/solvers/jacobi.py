@@ -6,29 +6,24 @@ from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
 
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
 from jaxcon.core.checks import check_bool, check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
-from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
-from jaxcon.solvers import contact_jacobi
+from jaxcon.solvers import contact
 from jaxcon.solvers.common import (
     check_stabilization,
     clamp_ropes,
-    contact_begin,
-    contact_end,
-    frames,
     gamma,
-    contact_substepped,
-    restitution_phases,
     row_solve,
+    run_substeps,
+    solve_phases,
     split_position_pass,
-    split_slop,
-    velocity_bias,
-    warm_start,
+    step_begin,
+    step_end,
+    with_contacts,
 )
 
 
@@ -54,7 +49,7 @@ class Jacobi(Solver):
     equation holds), but it is reached more slowly; relaxation < 2 / max particle degree always converges
     (Gershgorin bound on the scaled Delassus matrix), so the default is 1 / max degree.
 
-    Contacts (`planes`, `spheres`, `collide`; jaxcon.solvers.contact_jacobi): PGS's rows, warm start,
+    Contacts (`planes`, `spheres`, `collide`; `contact.jacobi_pass`): PGS's rows, warm start,
     time-of-impact correction and position pass, with every contact (all obstacles and all pair slots at once)
     and every rod updated from the same velocities in each iteration. With `relaxation=None` a model with contacts
     is relaxed by mass splitting: a row between particles i and j takes the effective mass
@@ -98,68 +93,87 @@ class Jacobi(Solver):
     supports_contacts = True
 
     def _step(self, sys, x, v, lam, dt):
-        if sys.contact is not None:
-            return contact_substepped(sys, functools.partial(self._substep_contacts, sys), self.substeps, x, v, lam,
-                                      dt)
-        topo = sys.topology
+        return run_substeps(sys, functools.partial(self._substep, sys), self.substeps, x, v, lam, dt)
+
+    def _substep(self, sys, x, v, lam_ws, h, found=None):
+        """One (sub)step: gravity, the rows and warm start of every kind (`common.step_begin`); then iterations
+        that update every constraint row and every contact row (`contact.jacobi_pass`) from the same v and apply
+        the sum, in the contacts' restitution phases (`common.solve_phases`); then x += h v with the contacts'
+        time-of-impact correction and position pass (`common.step_end`). `relaxation=None` relaxes by
+        1 / largest degree without contacts, by mass splitting with them. A grid model's step goes through
+        `grid_substepped`, which calls this with its candidate pairs `found`."""
+        topo, cs = sys.topology, sys.contact
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
-        relax = (jnp.asarray(1.0 / max_degree(topo), dtype) if self.relaxation is None
-                 else jnp.asarray(self.relaxation, dtype))
-        share = jnp.asarray(self.slop, dtype)
-
-        def substep(x, v, lam_ws, h):
-            v = sys.apply_gravity(v, h)
-            split = self.stabilization == "split"
-            fr = frames(sys, x)
-            slop = split_slop(sys, fr, v, h, beta, share) if split else None
-            bias = velocity_bias(topo, fr, beta, h, slop)
-            if self.warm_start:
-                v, lam = warm_start(sys, v, fr, lam_ws, h)
-            else:
-                lam = tuple(jnp.zeros_like(f.C) for f in fr)
-
-            gs = tuple(gamma(f, h) for f in fr)
-
-            def iterate(_, carry):
-                v, lam = carry
-                new = []
-                dv = jnp.zeros_like(v)
-                for blk, f, b, g, l in zip(topo.blocks, fr, bias, gs, lam):
-                    rel = R.rel(topo, blk, f, v)
-                    step = (rel + b) * f.k if g is None else row_solve(topo, blk, f, rel + b, l, g)
-                    nl = clamp_ropes(blk, l + relax * step)
-                    dv = R.apply(topo, blk, f, dv, nl - l)
-                    new.append(nl)
-                return v + dv, tuple(new)
-
-            v, lam = lax.fori_loop(0, self.iterations, iterate, (v, lam))
-            if split:
-                return split_position_pass(sys, x + h * v, self.iterations, slop, relax), v, lam
-            return x + h * v, v, lam
-
-        return substepped(substep, self.substeps, x, v, lam, dt)
-
-    def _substep_contacts(self, sys, x, v, lam_ws, h, found=None):
-        """One (sub)step of a model with contacts (jaxcon.solvers.contact_jacobi): PGS's contact rows, warm start,
-        time-of-impact correction and position safety pass, with rods and contacts solved in the same Jacobi
-        iterations. `relaxation=None` relaxes by mass splitting (per-particle counts of the rows that push).
-        A grid model's step goes through `grid_substepped`, which calls this with its candidate pairs `found`."""
-        topo = sys.topology
-        dtype = x.dtype
-        beta = jnp.asarray(self.beta, dtype)
-        relax = None if self.relaxation is None else jnp.asarray(self.relaxation, dtype)
+        if self.relaxation is not None:
+            relax = jnp.asarray(self.relaxation, dtype)
+        else:
+            relax = jnp.asarray(1.0 / max_degree(topo), dtype) if cs is None else None
         split = self.stabilization == "split"
         share = jnp.asarray(self.slop, dtype)
-        v_free, v, fr, bias, obs, pairs, lam, imp, slop = contact_begin(sys, x, v, lam_ws, beta, h, share if split else None,
-                                                                  self.warm_start, found=found)
+        b = step_begin(sys, x, v, lam_ws, beta, h, share if split else None, self.warm_start, found=found)
+        base = None if relax is not None else row_counts(topo, b.fr, sys.w)
+        springs = tuple(gamma(f, h) for f in b.fr)
 
-        def run(obs, pairs):
-            return functools.partial(contact_jacobi.iteration(sys, fr, bias, obs, pairs, relax), 0)
+        def iterations(obs, pairs):
+            def iterate(carry):
+                v, lam, imp = carry
+                count = None if relax is not None else contact.jacobi_counts(cs, v, obs, pairs, imp, base)
+                dv, lam = rows_pass(topo, b.fr, b.bias, springs, v, lam, count, relax)
+                if cs is None:
+                    return v + dv, lam, imp
+                dv_contacts, imp = contact.jacobi_pass(cs, sys.w, v, obs, pairs, imp, count, relax)
+                return v + dv + dv_contacts, lam, imp
+            return iterate
 
-        v, lam, imp = restitution_phases(sys, v_free, obs, pairs, self.iterations, (v, lam, imp), run)
+        v, lam, imp = solve_phases(sys, b.v_free, b.obs, b.pairs, self.iterations, (b.v, b.lam, b.imp), iterations)
         rods_pass = None
-        if split and fr:
+        if split and b.fr:
             rod_relax = jnp.asarray(1.0 / max_degree(topo), dtype) if relax is None else relax
-            rods_pass = lambda x: split_position_pass(sys, x, self.iterations, slop, rod_relax)  # noqa: E731
-        return contact_end(sys, x, v, v_free, obs, pairs, imp, h, rods_pass=rods_pass), v, (lam, imp)
+            rods_pass = lambda x: split_position_pass(sys, x, self.iterations, b.slop, rod_relax)  # noqa: E731
+        x = step_end(sys, x, v, b.v_free, b.obs, b.pairs, imp, h, rods_pass=rods_pass)
+        return x, v, with_contacts(sys, lam, imp)
+
+
+def row_counts(topo, fr, like):
+    """Number of constraint rows at each particle, [1, *view] (rows with no effective mass left out): the
+    base of mass splitting's counts (`contact.jacobi_counts`)."""
+    c = jnp.zeros((1,) + like.shape[1:], like.dtype)
+    for blk, f in zip(topo.blocks, fr):
+        one = (f.k > 0).astype(like.dtype)[None]
+        if blk.generic is not None:          # a set's row counts at each of its particles
+            c = L.add_rows(topo, blk, c, jnp.broadcast_to(one[:, None], (1,) + f.w.shape))
+            continue
+        c = L.add_pair(topo, blk, c, one, one)
+    return c
+
+
+def _split_mass(topo, blk, f, count):
+    """A row's J M^-1 J^T with each particle's inverse mass multiplied by its count (mass splitting)."""
+    if blk.generic is not None:
+        c = L.gather_rows(topo, blk, count)[0]
+        return jnp.sum(c * f.w * jnp.sum(f.J * f.J, axis=0), axis=0)
+    ci, cj = L.gather_pair(topo, blk, count)
+    return ci[0] * f.wi + cj[0] * f.wj
+
+
+def rows_pass(topo, fr, bias, springs, v, lam, count, relax):
+    """Jacobi update of every constraint row from the same `v`: (dv, lam), each row's change
+    `common.row_solve` (a set's compliant rows as implicit springs) scaled by `relax`, or, with the
+    per-particle counts `count` [1, *view] (mass splitting), the same update with the effective mass
+    1 / (c_i w_i + c_j w_j) (a set's rows: J M^-1 J^T with each inverse mass multiplied by its count)."""
+    dv = jnp.zeros_like(v)
+    new = []
+    for blk, f, b, g, l in zip(topo.blocks, fr, bias, springs, lam):
+        rhs = R.rel(topo, blk, f, v) + b
+        if count is None:
+            step = relax * (rhs * f.k if g is None else row_solve(topo, blk, f, rhs, l, g))
+        else:
+            active = (f.k > 0).astype(f.k.dtype)
+            s = _split_mass(topo, blk, f, count)
+            step = rhs * L.safe_reciprocal(s) * active if g is None else \
+                (rhs - g.g * l) * L.safe_reciprocal(s + g.g) * active
+        nl = clamp_ropes(blk, l + step)
+        dv = R.apply(topo, blk, f, dv, nl - l)
+        new.append(nl)
+    return dv, tuple(new)

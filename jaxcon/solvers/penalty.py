@@ -13,10 +13,9 @@ from jaxcon.core import layout as L
 from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
-from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
-from jaxcon.solvers import contact, contact_position
-from jaxcon.solvers.common import contact_substepped, with_found
+from jaxcon.solvers import contact
+from jaxcon.solvers.common import run_substeps, with_found
 
 #: The spring tension is clipped to +- STRETCH_CLIP * stiffness * rest_length (constraints with rest length
 #: > 0). A stable run never comes near it (it is a 1000% stretch, ten times `jc.diagnose`'s violation limit);
@@ -172,78 +171,85 @@ class Penalty(Solver):
                 RuntimeWarning, stacklevel=4)
 
     def _step(self, sys, x, v, lam, dt):
-        topo = sys.topology
+        topo, cs = sys.topology, sys.contact
         dtype = x.dtype
         k = jnp.asarray(self.stiffness, dtype)
         c = jnp.asarray(self.damping, dtype)
 
-        def substep(x, v, _, h):
-            geo = []
-            for blk, rest in zip(topo.blocks, sys.rest):
-                if blk.generic is not None:
-                    geo.append((jnp.zeros((), bool), None, None))
-                    continue
-                xi, xj = L.gather_pair(topo, blk, x)
-                wi, wj = L.gather_pair(topo, blk, sys.w)
-                C = L.safe_norm(xj - xi, axis=0)[0] - rest
-                geo.append(((rest > 0) & (C > STRETCH_CLIP * rest), wi[0], wj[0]))
-            # Past the clip the run has diverged (diagnose flags it). Such a substep passes no derivative
-            # back, so the gradient of a diverged run stays finite instead of overflowing through the blow-up.
-            blown = jnp.any(jnp.stack([jnp.any(b) for b, _, _ in geo]))
-            x = jnp.where(blown, lax.stop_gradient(x), x)
-            v = jnp.where(blown, lax.stop_gradient(v), v)
-            for b, (blk, rest) in enumerate(zip(topo.blocks, sys.rest)):
-                if blk.generic is not None:
-                    geo[b] = _set_springs(sys, blk, x, v, k, c)
-                    continue
-                xi, xj = L.gather_pair(topo, blk, x)
-                vi, vj = L.gather_pair(topo, blk, v)
-                dist, n = L.safe_norm(xj - xi, axis=0)
-                geo[b] = (n, geo[b][1], geo[b][2], dist - rest, jnp.sum((vj - vi) * n, axis=0), rest)
-            imp = []
-            for blk, g in zip(topo.blocks, geo):
-                if blk.generic is not None:
-                    imp.append(g[1] * h)
-                    continue
-                n, wi, wj, C, u, rest = g
-                T = k * C + c * u
-                cap = STRETCH_CLIP * k * rest
-                T = jnp.where(rest > 0, jnp.clip(T, -cap, cap), T)
-                if blk.has_rope:
-                    taut = jnp.where(C > 0, jnp.maximum(T, 0), 0)
-                    T = taut if blk.all_rope else jnp.where(blk.rope.array, taut, T)
-                imp.append(T * h)
-            v = sys.apply_gravity(v, h)
-            for blk, g, p in zip(topo.blocks, geo, imp):
-                if blk.generic is not None:
-                    v = R.apply(topo, blk, g[0], v, p)
-                    continue
-                n, wi, wj = g[:3]
-                q = n * p
-                v = L.add_pair(topo, blk, v, wi * q, -wj * q)
-            return x + h * v, v, tuple(imp)
-
-        if sys.contact is None:
-            return substepped(substep, self.substeps, x, v, lam, dt)
-
-        def with_contacts(x, v, ws, h, found=None):
-            # a grid model's step (`grid_substepped`) hands every substep the step's candidate pairs `found`
-            partners, prev = None, ws[1]
-            if found is not None:
-                partners = found[0]
-                pn, pt = contact.carry_slots(prev, partners)
-                prev = prev._replace(pair_n=pn, pair_t=pt)
-            x = _start_overlaps(sys.contact, sys.w, x, v, prev, h, k, c, partners)
+        def substep(x, v, ws, h, found=None):
+            """Springs, then with contacts (after moving start overlaps out, `_start_overlaps`) the contacts'
+            penalty impulses. A grid model's step (`grid_substepped`) hands every substep the step's candidate
+            pairs `found`."""
+            ws, prev = (ws, None) if cs is None else ws
+            partners = None
+            if cs is not None:
+                if found is not None:
+                    partners = found[0]
+                    pn, pt = contact.carry_slots(prev, partners)
+                    prev = prev._replace(pair_n=pn, pair_t=pt)
+                x = _start_overlaps(cs, sys.w, x, v, prev, h, k, c, partners)
             if topo.blocks:
-                x1, v1, imp_b = substep(x, v, ws[0], h)
-            else:                    # contacts only: no springs
+                x1, v1, imp_b = _springs(sys, x, v, h, k, c)
+            else:                    # no springs
                 v1 = sys.apply_gravity(v, h)
                 x1, imp_b = x + h * v1, ()
-            dv, imp_c = _contact_impulses(sys.topology, sys.contact, sys.w, x, v, v1, h, k, c,
-                                          jnp.asarray(self.slip_velocity, dtype), partners)
+            if cs is None:
+                return x1, v1, imp_b
+            dv, imp_c = _contact_impulses(topo, cs, sys.w, x, v, v1, h, k, c, jnp.asarray(self.slip_velocity, dtype),
+                                          partners)
             return x1 + h * dv, v1 + dv, (imp_b, with_found(imp_c, found))
 
-        return contact_substepped(sys, with_contacts, self.substeps, x, v, lam, dt)
+        return run_substeps(sys, substep, self.substeps, x, v, lam, dt)
+
+
+def _springs(sys, x, v, h, k, c):
+    """One substep of the constraints as springs of stiffness k and damping c (Penalty's docstring; a set's
+    compliant rows as their own springs, `_set_springs`): (x, v, impulses per block)."""
+    topo = sys.topology
+    geo = []
+    for blk, rest in zip(topo.blocks, sys.rest):
+        if blk.generic is not None:
+            geo.append((jnp.zeros((), bool), None, None))
+            continue
+        xi, xj = L.gather_pair(topo, blk, x)
+        wi, wj = L.gather_pair(topo, blk, sys.w)
+        C = L.safe_norm(xj - xi, axis=0)[0] - rest
+        geo.append(((rest > 0) & (C > STRETCH_CLIP * rest), wi[0], wj[0]))
+    # Past the clip the run has diverged (diagnose flags it). Such a substep passes no derivative
+    # back, so the gradient of a diverged run stays finite instead of overflowing through the blow-up.
+    blown = jnp.any(jnp.stack([jnp.any(b) for b, _, _ in geo]))
+    x = jnp.where(blown, lax.stop_gradient(x), x)
+    v = jnp.where(blown, lax.stop_gradient(v), v)
+    for b, (blk, rest) in enumerate(zip(topo.blocks, sys.rest)):
+        if blk.generic is not None:
+            geo[b] = _set_springs(sys, blk, x, v, k, c)
+            continue
+        xi, xj = L.gather_pair(topo, blk, x)
+        vi, vj = L.gather_pair(topo, blk, v)
+        dist, n = L.safe_norm(xj - xi, axis=0)
+        geo[b] = (n, geo[b][1], geo[b][2], dist - rest, jnp.sum((vj - vi) * n, axis=0), rest)
+    imp = []
+    for blk, g in zip(topo.blocks, geo):
+        if blk.generic is not None:
+            imp.append(g[1] * h)
+            continue
+        n, wi, wj, C, u, rest = g
+        T = k * C + c * u
+        cap = STRETCH_CLIP * k * rest
+        T = jnp.where(rest > 0, jnp.clip(T, -cap, cap), T)
+        if blk.has_rope:
+            taut = jnp.where(C > 0, jnp.maximum(T, 0), 0)
+            T = taut if blk.all_rope else jnp.where(blk.rope.array, taut, T)
+        imp.append(T * h)
+    v = sys.apply_gravity(v, h)
+    for blk, g, p in zip(topo.blocks, geo, imp):
+        if blk.generic is not None:
+            v = R.apply(topo, blk, g[0], v, p)
+            continue
+        n, wi, wj = g[:3]
+        q = n * p
+        v = L.add_pair(topo, blk, v, wi * q, -wj * q)
+    return x + h * v, v, tuple(imp)
 
 
 def _set_springs(sys, blk, x, v, k, c):
@@ -342,7 +348,7 @@ def _start_overlaps(cs, w, x, v, prev, h, k, c, partners=None):
         m = L.safe_reciprocal(w[0])
         size = jnp.sum(jnp.abs(x), 0) + r
         for q in range(ct.n_obstacles):
-            n, C = contact_position.obstacle_gap(cs, q, x)
+            n, C = contact.obstacle_gap(cs, q, x)
             tol = contact._tolerance(size + jnp.sum(jnp.abs(cs.plane_normal[q] if q < ct.n_planes else
                                                               cs.sphere_centre[q - ct.n_planes])))
             x = x + n * _excess(C, jnp.sum(n * v, 0), m, prev.obs_n[q], h, k, c, two_zeta, tol)
@@ -370,7 +376,7 @@ def _contact_impulses(topo, cs, w, x, v0, v, h, k, c, slip, partners=None):
         m = L.safe_reciprocal(w[0])
         rows = []
         for q in range(ct.n_obstacles):
-            n, C = contact_position.obstacle_gap(cs, q, x)
+            n, C = contact.obstacle_gap(cs, q, x)
             p_n, p_t = _penalty_row(v0, v, n, C, m, k, c, two_zeta, mu, slip, h)
             dv = dv + w * (n * p_n + p_t)
             rows.append((p_n, p_t))

@@ -12,24 +12,20 @@ from jaxcon.core import layout as L
 from jaxcon.core import rows as R
 from jaxcon.core.checks import check_bool, check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
-from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact
 from jaxcon.solvers.common import (
     apply_impulses,
     check_stabilization,
     clamp_ropes,
-    contact_begin,
-    contact_end,
-    frames,
     gamma,
-    contact_substepped,
-    restitution_phases,
     row_solve,
+    run_substeps,
+    solve_phases,
     split_position_pass,
-    split_slop,
-    velocity_bias,
-    warm_start,
+    step_begin,
+    step_end,
+    with_contacts,
 )
 
 
@@ -124,70 +120,47 @@ class PGS(Solver):
         factor = self.warm_start_factor
         return factor if isinstance(factor, (int, float)) else jnp.asarray(factor, dtype)
 
-    def _substep(self, sys, x, v, lam_ws, h):
-        topo = sys.topology
-        dtype = x.dtype
-        beta = jnp.asarray(self.beta, dtype)
-        v = sys.apply_gravity(v, h)
-        split = self.stabilization == "split"
-        fr = frames(sys, x)
-        slop = split_slop(sys, fr, v, h, beta, jnp.asarray(self.slop, dtype)) if split else None
-        bias = velocity_bias(topo, fr, beta, h, slop)
-        v_free = v
-        if self.warm_start:
-            v, lam = warm_start(sys, v, fr, lam_ws, h, self._factor(dtype), self.warm_start_gradient)
-        else:
-            lam = tuple(jnp.zeros_like(f.C) for f in fr)
-
-        block_sweep = self._block_sweep(topo, fr, bias, h)
-
-        def sweep(_, carry):
-            return block_sweep(*carry)
-
-        if self.implicit:
-            return self._implicit(sys, x, v, lam, fr, bias, h)
-        if topo.packed and topo.blocks:
-            # the warm start's impulses, as `warm_start` applied them to v_free: the first colour's impulse
-            # change is computed from them (`layout.gather_after`) rather than from the stored v
-            ws = [(blk, f.wi * (f.n * l), -f.wj * (f.n * l)) for blk, f, l in zip(topo.blocks, fr, lam)] \
-                if self.warm_start else []
-            v, lam = packed_sweeps(topo, fr, bias, v, lam, self.iterations, v_free, ws)
-        else:
-            v, lam = lax.fori_loop(0, self.iterations, sweep, (v, lam))
-        if split:
-            return split_position_pass(sys, x + h * v, self.iterations, slop), v, lam
-        return x + h * v, v, lam
-
-    def _substep_contacts(self, sys, x, v, lam_ws, h, found=None):
-        """The same step with contacts (jaxcon.solvers.contact): each sweep solves the constraint colours, then
-        the contacts; positions get the time-of-impact correction. Contacts push out overlap with `beta`. A grid
-        model's step goes through `grid_substepped`, which calls this with its candidate pairs `found`."""
-        if self.implicit:
-            raise ValueError("PGS(implicit=True) does not support contacts (an inequality); use implicit=False")
+    def _substep(self, sys, x, v, lam_ws, h, found=None):
+        """One (sub)step: gravity, the rows and warm start of every kind (`common.step_begin`); each sweep
+        solves the constraint colours, then the contacts (`contact.sweep`, nothing without contacts), in the
+        contacts' restitution phases (`common.solve_phases`); then x += h v with the contacts' time-of-impact
+        correction and position pass (`common.step_end`). Contacts push out overlap with `beta`. A grid model's
+        step goes through `grid_substepped`, which calls this with its candidate pairs `found`."""
         topo, cs = sys.topology, sys.contact
+        if self.implicit and cs is not None:
+            raise ValueError("PGS(implicit=True) does not support contacts (an inequality); use implicit=False")
         dtype = x.dtype
         beta = jnp.asarray(self.beta, dtype)
         contact_slop = jnp.asarray(self.contact_slop, dtype)
         split = self.stabilization == "split"
         share = jnp.asarray(self.slop, dtype)
-        v_free, v, fr, bias, obs, pairs, lam, imp, slop = contact_begin(
-            sys, x, v, lam_ws, beta, h, share if split else None, self.warm_start, self._factor(dtype),
-            self.warm_start_gradient, found, contact_slop)
-        block_sweep = self._block_sweep(topo, fr, bias, h)
+        b = step_begin(sys, x, v, lam_ws, beta, h, share if split else None, self.warm_start, self._factor(dtype),
+                       self.warm_start_gradient, found, contact_slop)
+        v, lam, imp = b.v, b.lam, b.imp
+        if self.implicit:
+            return self._implicit(sys, x, v, lam, b.fr, b.bias, h)
+        if topo.packed and topo.blocks and cs is None:
+            # the warm start's impulses, as `warm_start` applied them to v_free: the first colour's impulse
+            # change is computed from them (`layout.gather_after`) rather than from the stored v
+            ws = [(blk, f.wi * (f.n * l), -f.wj * (f.n * l)) for blk, f, l in zip(topo.blocks, b.fr, lam)] \
+                if self.warm_start else []
+            v, lam = packed_sweeps(topo, b.fr, b.bias, v, lam, self.iterations, b.v_free, ws)
+        else:
+            block_sweep = self._block_sweep(topo, b.fr, b.bias, h)
 
-        def sweeps(obs, pairs):
-            def sweep(carry):
-                v, lam, imp = carry
-                v, lam = block_sweep(v, lam)
-                v, imp = contact.sweep(cs, sys.w, v, obs, pairs, imp)
-                return v, lam, imp
-            return sweep
+            def sweeps(obs, pairs):
+                def sweep(carry):
+                    v, lam, imp = carry
+                    v, lam = block_sweep(v, lam)
+                    v, imp = contact.sweep(cs, sys.w, v, obs, pairs, imp)
+                    return v, lam, imp
+                return sweep
 
-        v, lam, imp = restitution_phases(sys, v_free, obs, pairs, self.iterations, (v, lam, imp), sweeps)
-        rods_pass = (lambda x: split_position_pass(sys, x, self.iterations, slop)) if split and fr else None
-        x = contact_end(sys, x, v, v_free, obs, pairs, imp, h, passes=None, rods_pass=rods_pass,
-                        contact_slop=contact_slop)
-        return x, v, (lam, imp)
+            v, lam, imp = solve_phases(sys, b.v_free, b.obs, b.pairs, self.iterations, (v, lam, imp), sweeps)
+        rods_pass = (lambda x: split_position_pass(sys, x, self.iterations, b.slop)) if split and b.fr else None
+        x = step_end(sys, x, v, b.v_free, b.obs, b.pairs, imp, h, passes=None, rods_pass=rods_pass,
+                     contact_slop=contact_slop)
+        return x, v, with_contacts(sys, lam, imp)
 
     @staticmethod
     def _block_sweep(topo, fr, bias, h):
@@ -248,10 +221,7 @@ class PGS(Solver):
         return x + h * v, v, lam
 
     def _step(self, sys, x, v, lam, dt):
-        if sys.contact is not None:
-            return contact_substepped(sys, functools.partial(self._substep_contacts, sys), self.substeps, x, v, lam,
-                                      dt)
-        return substepped(functools.partial(self._substep, sys), self.substeps, x, v, lam, dt)
+        return run_substeps(sys, functools.partial(self._substep, sys), self.substeps, x, v, lam, dt)
 
 
 def packed_sweeps(topo, fr, bias, v, lam, iterations, v_free, ws):

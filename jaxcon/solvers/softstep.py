@@ -12,11 +12,10 @@ from jaxcon.core import layout as L
 from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
-from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
-from jaxcon.solvers import contact, contact_soft
-from jaxcon.solvers.common import (apply_impulses, clamp_ropes, contact_substepped, frames, gamma, row_solve, warm_rows,
-                                   with_found)
+from jaxcon.solvers import contact
+from jaxcon.solvers.common import (apply_impulses, clamp_ropes, frames, gamma, row_solve, run_substeps, warm_rows,
+                                   with_contacts, with_found)
 
 
 def soft_coefficients(hertz, damping_ratio, h):
@@ -81,7 +80,7 @@ class SoftStep(Solver):
     hertz <= 0.5 / h); as hertz h grows the constraint turns rigid (bias_rate -> 1 / h, mass_scale -> 1,
     impulse_scale -> 0), so large values stay stable.
 
-    Contacts (`planes`, `spheres`, `collide`; jaxcon.solvers.contact_soft), as Box2D v3: PGS's rows (speculative
+    Contacts (`planes`, `spheres`, `collide`; `contact.soft_rows`), as Box2D v3: PGS's rows (speculative
     contacts, swept time of impact, restitution) solved after the rods in the same sweeps; a touching or
     overlapping contact is soft in the solve sweep (push-out at `contact_hertz`, `contact_damping_ratio`, at
     most `contact_push_velocity`; obstacles, Box2D's static bodies, at twice the hertz) and rigid, with its
@@ -124,63 +123,44 @@ class SoftStep(Solver):
     supports_contacts = True
 
     def _step(self, sys, x, v, lam, dt):
-        if sys.contact is not None:
-            return contact_substepped(sys, functools.partial(self._substep_contacts, sys), self.substeps, x, v, lam,
-                                      dt)
-        dtype = x.dtype
-        hertz = jnp.asarray(self.hertz, dtype)
-        zeta = jnp.asarray(self.damping_ratio, dtype)
-        topo = sys.topology
+        return run_substeps(sys, functools.partial(self._substep, sys), self.substeps, x, v, lam, dt)
 
-        sweep = functools.partial(_sweep, topo)
-
-        def substep(x, v, lam, h):
-            bias_rate, mass_scale, impulse_scale = soft_coefficients(hertz, zeta, h)
-            v = sys.apply_gravity(v, h)
-            fr = frames(sys, x)
-            lam = tuple(clamp_ropes(blk, warm_rows(f, l, h)) * (f.k > 0).astype(l.dtype)
-                        for blk, f, l in zip(topo.blocks, fr, lam))
-            v = apply_impulses(sys, v, fr, lam)
-            inv_h = 1 / h
-            v, lam = sweep(v, lam, fr, lambda f: bias_rate * f.C, mass_scale, impulse_scale, inv_h)
-            x = x + h * v
-            if self.relax_iterations:
-                fr = frames(sys, x)
-                v, lam = lax.fori_loop(
-                    0, self.relax_iterations,
-                    lambda _, c: sweep(*c, fr, lambda f: jnp.zeros_like(f.C), 1.0, 0.0, inv_h, False), (v, lam))
-            return x, v, lam
-
-        return substepped(substep, self.substeps, x, v, lam, dt)
-
-    def _substep_contacts(self, sys, x, v, lam, h, found=None):
-        """One substep of a model with contacts (jaxcon.solvers.contact_soft): the rods' solve sweep, then the
-        contacts' (soft push-out of overlap, no restitution); positions with the time-of-impact correction; relax
-        sweeps over rods and contacts without bias, restitution in the contacts' relax targets. A grid model's
-        step goes through `grid_substepped`, which calls this with its candidate pairs `found`."""
+    def _substep(self, sys, x, v, lam, h, found=None):
+        """One substep: warm start; the solve sweep over the constraint colours, then the contacts' (soft
+        push-out of overlap, no restitution: `contact.soft_rows`); positions, with the contacts' time-of-impact
+        correction; relax sweeps over every row without bias, restitution in the contacts' relax targets. A grid
+        model's step goes through `grid_substepped`, which calls this with its candidate pairs `found`."""
         dtype = x.dtype
         topo, cs, w = sys.topology, sys.contact, sys.w
-        lam, imp = lam
-        soft = soft_coefficients(jnp.asarray(self.hertz, dtype), jnp.asarray(self.damping_ratio, dtype), h)
-        hz = (jnp.minimum(jnp.asarray(30.0, dtype), 0.25 / h) if self.contact_hertz is None
-              else jnp.asarray(self.contact_hertz, dtype))
-        zeta = jnp.asarray(self.contact_damping_ratio, dtype)
-        push = jnp.asarray(self.contact_push_velocity, dtype)
+        lam, imp = (lam, None) if cs is None else lam
+        bias_rate, mass_scale, impulse_scale = soft_coefficients(jnp.asarray(self.hertz, dtype),
+                                                                 jnp.asarray(self.damping_ratio, dtype), h)
         v0, v = v, sys.apply_gravity(v, h)
         v_free = v
         fr = frames(sys, x)
         lam = tuple(clamp_ropes(blk, warm_rows(f, l, h)) * (f.k > 0).astype(l.dtype)
                     for blk, f, l in zip(topo.blocks, fr, lam))
         v = apply_impulses(sys, v, fr, lam)
-        obs, pairs = contact.rows(cs, w, x, v0, v_free, jnp.zeros((), dtype), h, None if found is None else found[0])
-        v, imp = contact.warm_start(cs, w, v, obs, pairs, imp)
-        imp = with_found(imp, found)
-        s_obs, obs_soft = contact_soft.solve_rows(obs, soft_coefficients(2 * hz, zeta, h), push)   # static bodies
-        s_pairs, pair_soft = contact_soft.solve_rows(pairs, soft_coefficients(hz, zeta, h), push)
+        obs = pairs = solve_obs = solve_pairs = None
+        softness = (None, None)
+        if cs is not None:
+            hz = (jnp.minimum(jnp.asarray(30.0, dtype), 0.25 / h) if self.contact_hertz is None
+                  else jnp.asarray(self.contact_hertz, dtype))
+            zeta = jnp.asarray(self.contact_damping_ratio, dtype)
+            push = jnp.asarray(self.contact_push_velocity, dtype)
+            obs, pairs = contact.rows(cs, w, x, v0, v_free, jnp.zeros((), dtype), h,
+                                      None if found is None else found[0])
+            v, imp = contact.warm_start(cs, w, v, obs, pairs, imp)
+            imp = with_found(imp, found)
+            solve_obs, obs_soft = contact.soft_rows(obs, soft_coefficients(2 * hz, zeta, h), push)  # static bodies
+            solve_pairs, pair_soft = contact.soft_rows(pairs, soft_coefficients(hz, zeta, h), push)
+            softness = (obs_soft, pair_soft)
         inv_h = 1 / h
-        v, lam = _sweep(topo, v, lam, fr, lambda f: soft[0] * f.C, soft[1], soft[2], inv_h)
-        v, imp = contact_soft.soft_sweep(cs, w, v, s_obs, s_pairs, imp, obs_soft, pair_soft)
-        x = x + h * v - contact.impact_times(cs, obs, pairs, imp, x.shape) * (v - v_free)
+        v, lam = _sweep(topo, v, lam, fr, lambda f: bias_rate * f.C, mass_scale, impulse_scale, inv_h)
+        v, imp = contact.sweep(cs, w, v, solve_obs, solve_pairs, imp, softness)
+        x = x + h * v
+        if cs is not None:
+            x = x - contact.impact_times(cs, obs, pairs, imp, x.shape) * (v - v_free)
         if self.relax_iterations:
             fr = frames(sys, x)
 
@@ -191,4 +171,4 @@ class SoftStep(Solver):
                 return v, lam, imp
 
             v, lam, imp = lax.fori_loop(0, self.relax_iterations, relax, (v, lam, imp))
-        return x, v, (lam, imp)
+        return x, v, with_contacts(sys, lam, imp)

@@ -10,8 +10,8 @@ from jaxcon.core import layout as L
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
-from jaxcon.solvers import contact, contact_position
-from jaxcon.solvers.common import contact_substepped, position_sweep, with_found
+from jaxcon.solvers import contact
+from jaxcon.solvers.common import position_sweep, run_substeps, with_contacts, with_found
 
 
 @pytree_dataclass
@@ -37,7 +37,7 @@ class XPBD(Solver):
       compliance: inverse stiffness, m/N, a differentiable leaf, >= 0; 0 is a rigid rod.
       substeps: substeps per step, static, >= 1.
 
-    Contacts (a model with `planes`, `spheres` or `collide`; jaxcon.solvers.contact_position, Mueller et al.
+    Contacts (a model with `planes`, `spheres` or `collide`; `contact.position_pass`, Mueller et al.
     2020): in each iteration, after the colours, every contact with gap C(p) < 0 is projected out at position
     level (rigid, lam_n accumulated >= 0; obstacles for all particles at once, pairs round by round), with
     *static* friction cancelling the substep's relative tangential displacement while |lam_t| <= mu lam_n.
@@ -66,36 +66,11 @@ class XPBD(Solver):
     supports_contacts = True
 
     def _step(self, sys, x, v, lam, dt):
-        if sys.contact is not None:
-            return self._step_contacts(sys, x, v, lam, dt)
-        topo = sys.topology
-        dtype = x.dtype
-        h = dt / self.substeps
-        alpha = jnp.asarray(self.compliance, dtype) / (h * h)
-        sweep = position_sweep(sys, sys.rest, alpha, set_alpha=lambda a: a / (h * h))
-
-        def predict(x, v):
-            return x + h * sys.apply_gravity(v, h)
-
-        def substep(_, carry):
-            # the prediction p = x + h (v + h g) is made at the end of the previous substep and carried, so it
-            # is one stored array: made inside the first colour's kernels instead, XLA recomputes it in each
-            # of them and splits that colour's update into three passes over the particles
-            x, v, p, total = carry
-            mu = tuple(jnp.zeros(b.shape, dtype) for b in topo.blocks)
-            p, mu = lax.fori_loop(0, self.iterations, sweep, (p, mu))
-            v = (p - x) / h
-            return p, v, predict(p, v), tuple(t + m / h for t, m in zip(total, mu))
-
-        zero = tuple(jnp.zeros(b.shape, dtype) for b in topo.blocks)
-        x, v, _, total = lax.fori_loop(0, self.substeps, substep, (x, v, predict(x, v), zero))
-        return x, v, total
-
-    def _step_contacts(self, sys, x, v, lam, dt):
-        """The step of a model with contacts (jaxcon.solvers.contact_position): each iteration projects the
-        colours, then the contacts; after v = (p - x) / h, one velocity pass of restitution and dynamic
-        friction. Returns lam as (block impulses, contact `Impulses`), both summed over the substeps. A grid
-        model's substeps share one search for the whole step (`grid_substepped`)."""
+        """Every substep: the prediction p = x + h (v + h g); `iterations` sweeps, each projecting the
+        constraint colours, then the contacts (`contact.position_pass`); v = (p - x) / h, then with contacts
+        one velocity pass of restitution and dynamic friction (`contact.position_velocity_pass`). Returns the
+        impulses summed over the substeps: the blocks', paired with the contacts' `Impulses` where the model has
+        contacts. A grid model's substeps share one search for the whole step (`grid_substepped`)."""
         topo, cs = sys.topology, sys.contact
         dtype = x.dtype
         compliance = jnp.asarray(self.compliance, dtype)
@@ -103,18 +78,22 @@ class XPBD(Solver):
         def substep(x, v, _, h, found=None):
             partners = None if found is None else found[0]
             sweep_colours = position_sweep(sys, sys.rest, compliance / (h * h), set_alpha=lambda a: a / (h * h))
-            zero_b = tuple(jnp.zeros(b.shape, dtype) for b in topo.blocks)
-            zero_c = contact.zero_impulses(topo, cs.ct, dtype)
             v_before = sys.apply_gravity(v, h)
 
             def sweep(i, c):
                 p, mu, imp = c
                 p, mu = sweep_colours(i, (p, mu))
-                p, imp = contact_position.project(cs, sys.w, x, p, imp, partners)
+                if cs is not None:
+                    p, imp = contact.position_pass(cs, sys.w, x, p, imp, partners)
                 return p, mu, imp
 
-            p, mu, imp = lax.fori_loop(0, self.iterations, sweep, (x + h * v_before, zero_b, zero_c))
-            v, imp = contact_position.velocity_pass(cs, sys.w, p, v_before, (p - x) / h, imp, h, partners)
-            return p, v, (tuple(m / h for m in mu), with_found(imp, found))
+            zero = tuple(jnp.zeros(b.shape, dtype) for b in topo.blocks)
+            imp = None if cs is None else contact.zero_impulses(topo, cs.ct, dtype)
+            p, mu, imp = lax.fori_loop(0, self.iterations, sweep, (x + h * v_before, zero, imp))
+            v = (p - x) / h
+            if cs is not None:
+                v, imp = contact.position_velocity_pass(cs, sys.w, p, v_before, v, imp, h, partners)
+                imp = with_found(imp, found)
+            return p, v, with_contacts(sys, tuple(m / h for m in mu), imp)
 
-        return contact_substepped(sys, substep, self.substeps, x, v, lam, dt)
+        return run_substeps(sys, substep, self.substeps, x, v, lam, dt)
