@@ -285,3 +285,24 @@ def test_contacts_with_rods_a_falling_chain(solver):
     d = np.linalg.norm(np.diff(np.asarray(final.x), axis=0), axis=-1)
     np.testing.assert_allclose(d, np.asarray(model.rest_length), rtol=0.02)
     _check_impulses(traj, float(model.friction))
+
+
+@pytest.mark.parametrize("solver", [jc.PGS(8), jc.Jacobi(12, relaxation=0.4), jc.SoftStep(), jc.XPBD(), PENALTY],
+                         ids=lambda s: type(s).__name__)
+def test_a_contact_that_never_touches_changes_no_constraint_row(solver):
+    """Every solver runs one (sub)step whether or not the model has contacts: a floor 100 m below a swinging
+    chain of rods and a compliant user-written spring adds the contact kind's stages, which must leave every
+    constraint row as it was. Found by this test: Jacobi's iteration with contacts used to treat a set's
+    compliant rows as hard (it ignored their spring)."""
+    x = np.array([[0.0, 0.0], [0.6, -0.3], [1.1, -0.9], [1.5, -1.6]])
+    spring = jc.constraints.distance([[2, 3]], rest=[0.7], compliance=1e-3, name="spring")
+    kw = dict(rods=[(0, 1), (1, 2)], fixed=[0], constraints=[spring])
+    plain, state = jc.build(x, [1.0, 0.8, 1.3, 0.6], **kw)
+    floored, floored_state = jc.build(x, [1.0, 0.8, 1.3, 0.6], planes=[((0.0, 1.0), -100.0)], radius=0.05, **kw)
+    final, traj = jc.rollout(plain, state, solver, 1 / 240, 40)
+    final_f, traj_f = jc.rollout(floored, floored_state, solver, 1 / 240, 40)
+    np.testing.assert_allclose(traj_f.x, traj.x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(traj_f.lam, traj.lam, rtol=0, atol=1e-12)
+    assert np.abs(np.asarray(traj_f.contact_n)).max() == 0
+    stretch = np.linalg.norm(np.asarray(traj.x[-1, 3] - traj.x[-1, 2])) - 0.7
+    assert abs(stretch) > 1e-4          # the spring is soft enough to stretch: a hard row would not
