@@ -181,7 +181,7 @@ SLOW = {
     # (test_billiards_break_conserves_momentum_and_never_gains_energy[Jacobi], test_hard_contact_case[Jacobi-..])
     "tests/test_contacts_solvers_b.py::test_jacobi_relaxations_converge_on_a_tight_rack",
     # a contact that never touches changes no constraint row: the PGS, Jacobi and XPBD variants stay (velocity
-    # level Gauss-Seidel and Jacobi, position level); SoftStep's and Penalty's models without contacts trace no
+    # level Gauss-Seidel and Jacobi, position level), and every solver's model without contacts traces no
     # contact code (test_contacts_solvers.py::test_models_without_contacts_trace_no_contact_code)
     "tests/test_contacts_solvers.py::test_a_contact_that_never_touches_changes_no_constraint_row[SoftStep]",
     "tests/test_contacts_solvers.py::test_a_contact_that_never_touches_changes_no_constraint_row[Penalty]",

@@ -266,7 +266,9 @@ def test_models_without_contacts_trace_no_contact_code(monkeypatch):
     monkeypatch.setattr(penalty_module, "_contact_impulses", boom)
     chain, chain_state = jc.scenes.chain(n_links=4)
     ball, ball_state = _ball(0.5)
-    for solver in SOLVERS:          # 3 steps: a call no other test makes, so it is traced, not cached
+    # every solver that takes contacts (PGS plain and split, Jacobi, SoftStep, XPBD, Penalty); 3 steps: a call no
+    # other test makes, so it is traced, not cached
+    for solver in [jc.PGS(4), jc.PGS(4, stabilization="split"), jc.Jacobi(4), jc.SoftStep()] + SOLVERS:
         jax.make_jaxpr(lambda s, solver=solver: jc.rollout(chain, s, solver, 1 / 240, 3))(chain_state)
         with pytest.raises(AssertionError, match="contact code traced"):
             jax.make_jaxpr(lambda s, solver=solver: jc.rollout(ball, s, solver, 1 / 240, 3))(ball_state)

@@ -5,7 +5,8 @@
 N discs (R = 0.5 m, 1 kg, friction 0.5, restitution 0) in staggered rows 1 m above the floor of a box
 (`jc.scenes.disc_box`) fall and come to rest; dt = 1/60 s, 8 s simulated, 10 velocity iterations everywhere:
 
-* jaxcon: `jc.scenes.disc_box(N, collide="grid")` (the neighbour grid), `jc.PGS(10)`, float32;
+* jaxcon: `jc.scenes.disc_box(N, collide="grid")` (the neighbour grid), `jc.PGS(10)`, float32, and
+  `jc.PGS(10, substeps=2)` (its substeps share the step's one neighbour search), which rests at 4096 discs;
 * pymunk (Chipmunk 7): `space.iterations = 10`, `collision_slop = 0.005` m (Box2D's linear slop; pymunk's
   default, 0.1 m, is meant for pixels and lets discs of 0.5 m sink 20% of R into each other), friction
   sqrt(0.5) on every shape (pymunk multiplies the two shapes' values: 0.5 per contact), no sleeping;
@@ -97,7 +98,7 @@ def _steps(seconds):
     return int(round(seconds / DT / CHUNK)) * CHUNK
 
 
-def run_jaxcon(n, seconds=SECONDS, solver=None, **scene):
+def run_jaxcon(n, seconds=SECONDS, solver=None, name="jaxcon", **scene):
     from jaxcon.core.sim import rollout
     from jaxcon.scenes import disc_box, disc_box_layout
     from jaxcon.solvers.pgs import PGS
@@ -105,7 +106,7 @@ def run_jaxcon(n, seconds=SECONDS, solver=None, **scene):
     solver = PGS(10) if solver is None else solver
     model, state = disc_box(n, dtype=np.float32, **scene)
     _, width = disc_box_layout(n)
-    out = _Run("jaxcon", f"PGS({solver.iterations}) grid float32")
+    out = _Run(name, f"PGS({solver.iterations}, substeps={solver.substeps}) grid float32")
     fn = jax.jit(lambda s: rollout(model, s, solver, DT, CHUNK, save_every=CHUNK)[0])
     t0 = time.perf_counter()
     compiled = fn.lower(state).compile()
@@ -184,6 +185,8 @@ def run_pymunk(n, seconds=SECONDS):
 
 
 PEERS = (("Box2D", "Box2D", run_box2d), ("pymunk", "pymunk", run_pymunk))
+#: jaxcon's configurations: the issue's PGS(10), and PGS(10) with 2 substeps (the one that rests at 4096 discs)
+JAXCON = (("jaxcon", 10, 1), ("jaxcon 2 substeps", 10, 2))
 
 
 def main(sizes=(64, 256, 1024), seconds=SECONDS):
@@ -202,13 +205,16 @@ def main(sizes=(64, 256, 1024), seconds=SECONDS):
     print("|" + "---|" * len(head))
     results = []
     for n in sizes:
-        runs = [run_jaxcon(n, seconds)] + [fn(n, seconds) for _, fn in peers]
+        from jaxcon.solvers.pgs import PGS
+        ours = [run_jaxcon(n, seconds, PGS(it, substeps=sub), name) for name, it, sub in JAXCON]
+        runs = ours + [fn(n, seconds) for _, fn in peers]
         costs = {}
         for r in runs:
             cells, ms = r.row(n)
             costs[r.name] = ms
             print("| " + " | ".join(cells) + " |", flush=True)
-        ratio = "; ".join(f"jaxcon / {k} {costs['jaxcon'] / v:.1f}x" for k, v in costs.items() if k != "jaxcon")
+        ratio = "; ".join(f"{j.name} / {k} {costs[j.name] / v:.1f}x" for j in ours for k, v in costs.items()
+                          if k not in {o.name for o in ours})
         if ratio:
             print(f"|  | {n} | {ratio} |", flush=True)
         results.append((n, runs))

@@ -1,4 +1,5 @@
-"""Solver interface, the shared per-constraint geometry, and the PGS / sequential-impulse solver."""
+"""What the solvers share: the constraints' frames, the row update, biases, warm start, split impulses, the position and
+SHAKE sweeps, and the frame of a (sub)step for every kind (contacts included) with the neighbour grid's step."""
 from __future__ import annotations
 
 import functools

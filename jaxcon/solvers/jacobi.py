@@ -54,8 +54,9 @@ class Jacobi(Solver):
     time-of-impact correction and position pass, with every contact (all obstacles and all pair slots at once)
     and every rod updated from the same velocities in each iteration. With `relaxation=None` a model with contacts
     is relaxed by mass splitting: a row between particles i and j takes the effective mass
-    1 / (c_i w_i + c_j w_j), c the number of rods and pushing contacts at each particle in that iteration
-    (convergent, and momentum-conserving: every impulse acts equally and oppositely). On the 16-ball break it
+    1 / (c_i w_i + c_j w_j), c the number of constraint rows and pushing contacts at each particle in that
+    iteration (a compliant row adds its gamma = alpha / h^2 to that; convergent, and momentum-conserving: every
+    impulse acts equally and oppositely; `contact.jacobi_pass`). On the 16-ball break it
     needs 8 to 10 times PGS's iterations to converge (e.g. `Jacobi(20, substeps=2)` where `PGS(20)` suffices).
 
     Args:
@@ -98,7 +99,8 @@ class Jacobi(Solver):
         2 / (largest number of constraints at one particle): the bound below which the iteration converges for
         every set of constraints (Gershgorin), and above which a cloth's corrections overshoot and grow until
         the run is NaN (a draped 6x6 cloth, 8 rods at a particle, with relaxation 0.5). A warning, not an error:
-        the bound is sufficient, not necessary."""
+        the bound is sufficient, not necessary. With contacts, which add rows at a particle as they touch, staying
+        below it is not enough: there the bound counts the constraints only."""
         r = None if self.relaxation is None else concrete(self.relaxation)
         if r is None:
             return
@@ -108,7 +110,8 @@ class Jacobi(Solver):
                 f"{owner}: Jacobi relaxation={float(r):g} is at or above 2 / {deg} = {2.0 / deg:.3g}, where {deg} "
                 "is the largest number of constraints at one particle of this model: the iterations may diverge "
                 f"(to NaN). Use relaxation < {2.0 / deg:.3g}, or relaxation=None (1 / {deg} without contacts, "
-                "mass splitting with them).", RuntimeWarning, stacklevel=4)
+                "mass splitting with them). Contacts add rows at a particle that this bound does not count.",
+                RuntimeWarning, stacklevel=4)
 
     def _step(self, sys, x, v, lam, dt):
         return run_substeps(sys, functools.partial(self._substep, sys), self.substeps, x, v, lam, dt)
