@@ -59,10 +59,18 @@ def test_a_pile_lands_and_rests_on_the_grid_with_every_solver(name):
     assert float(jnp.max(d.penetration)) < OVERLAP[name] * 2 * R
     assert float(jnp.max(jnp.abs(final.v))) < 0.02
     assert np.all(np.isfinite(np.asarray(traj.contact_n))) and float(jnp.min(traj.contact_n)) >= 0
-    # the floor carries the pile: over the last step its normal impulses (summed over the substeps) are the
-    # order of the pile's weight times dt (the walls take some of it through friction)
-    floor = float(jnp.sum(traj.contact_n[-1, : model.topology.n]))
-    assert 0.7 < floor / (18 * 9.81 / 120) < 1.05
+    # the box carries the pile: over the last step the impulses of the floor and the walls (normal and friction,
+    # summed over the substeps) add up to the pile's weight times dt, and point up. How the weight divides between
+    # the floor and the walls' friction is statically indeterminate: the walls may hold some of it up, or press
+    # down what the pile locked in as it landed (PGS: the floor carries 1.10 of the weight, the walls' friction
+    # -0.10, with every velocity below 1e-17)
+    q, n = len(BOX), model.topology.n
+    normals = np.array([p[0] for p in BOX])
+    cn = np.asarray(traj.contact_n[-1, : q * n]).reshape(q, n)
+    ct = np.asarray(traj.contact_t[-1, : q * n]).reshape(q, n, 2)
+    weight = 18 * 9.81 / 120
+    np.testing.assert_allclose((cn[:, :, None] * normals[:, None] + ct).sum((0, 1)) / weight, [0, 1], atol=0.02)
+    assert 0.7 < float(cn[0].sum()) / weight < 1.3
 
 
 def test_penalty_on_the_grid_equals_all_pairs_in_3d():
