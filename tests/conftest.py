@@ -189,6 +189,13 @@ SLOW = {
     # Penalty's gradient through a glancing collision: XPBD's stays, and Penalty's contact gradients against
     # differences stay in test_sliding_to_rest_distance_and_gradients[Penalty]
     "tests/test_contacts_solvers.py::test_glancing_collision_gradient_matches_differences[Penalty]",
+    # hard contact cases with a sibling: SoftStep's break stays in test_contacts_solvers_b.py::test_billiards_break_
+    # conserves_momentum_and_never_gains_energy[SoftStep]; the split PGS drape in [PGS-drape_from_1m] and
+    # [PGS-split-break_16_dt_1_60]; Penalty's drape in its break and heavy-on-light cases and the other solvers'
+    # drapes
+    "tests/test_hard_cases_contacts.py::test_hard_contact_case[SoftStep-break_16_dt_1_60]",
+    "tests/test_hard_cases_contacts.py::test_hard_contact_case[PGS-split-drape_from_1m]",
+    "tests/test_hard_cases_contacts.py::test_hard_contact_case[Penalty-drape_from_1m]",
 }
 
 
