@@ -382,6 +382,11 @@ def with_contacts(sys, lam, imp):
     return lam if sys.contact is None else (lam, imp)
 
 
+def split_contacts(sys, lam):
+    """The inverse of `with_contacts`: (the constraint blocks' impulses, the contact `Impulses` or None)."""
+    return (lam, None) if sys.contact is None else lam
+
+
 def grid_substepped(sys, substep, substeps: int, x, v, lam, dt):
     """A step of a model with a neighbour grid: `substep(x, v, lam_ws, h, found=...) -> (x, v, lam_h)` run
     `substeps` times (`substepped`) with the candidate pairs `found` = (partners, overflow) of one search made
@@ -485,7 +490,7 @@ def step_begin(sys, x, v, lam_ws, beta, h, split, warm: bool, factor=1.0, gradie
     carries (`with_contacts`). A grid model passes its candidate pairs `found` = (partners, overflow)
     (`grid_step`)."""
     topo, cs = sys.topology, sys.contact
-    lam_ws, imp_ws = (lam_ws, None) if cs is None else lam_ws
+    lam_ws, imp_ws = split_contacts(sys, lam_ws)
     v0, v = v, sys.apply_gravity(v, h)
     fr = frames(sys, x)
     slop = None if split is None else split_slop(sys, fr, v, h, beta, split)

@@ -683,12 +683,10 @@ def _obstacle_frame(obs: Rows):
     return obs._replace(n=jnp.moveaxis(obs.n, 1, 0))
 
 
-def jacobi_counts(cs: Optional[ContactSystem], v, obs: Rows, pairs: Rows, imp: Impulses, base):
+def jacobi_counts(cs: ContactSystem, v, obs: Rows, pairs: Rows, imp: Impulses, base):
     """Mass splitting's counts (`jacobi_pass`): `base` [1, *view] (the other rows at each particle) plus, per
     particle, the contact rows that push on it in this iteration: those that hold an impulse, or whose
-    unrelaxed update from the velocities `v` would give one. `base` unchanged without contacts."""
-    if cs is None:
-        return base
+    unrelaxed update from the velocities `v` would give one."""
     ct, c = cs.ct, base
     if obs is not None:
         f = _obstacle_frame(obs)
@@ -706,9 +704,8 @@ def jacobi_counts(cs: Optional[ContactSystem], v, obs: Rows, pairs: Rows, imp: I
     return c
 
 
-def jacobi_pass(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impulses, count, relax):
-    """Every contact row updated from the same `v` (Jacobi), each by `_solve_row`: (dv, imp), dv 0 without
-    contacts. A row between particles i and j takes the effective mass 1 / (c_i w_i + c_j w_j) with the
+def jacobi_pass(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, imp: Impulses, count, relax):
+    """Every contact row updated from the same `v` (Jacobi), each by `_solve_row`: (dv, imp). A row between particles i and j takes the effective mass 1 / (c_i w_i + c_j w_j) with the
     per-particle counts `count` [1, *view] (mass splitting, `jacobi_counts`; an obstacle has no inverse mass:
     1 / (c_i w_i)), or relax * k with a fixed relaxation (`count` None).
 
@@ -722,8 +719,6 @@ def jacobi_pass(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: 
     iteration converges for any fixed active set. The counts are recomputed in every iteration, so a particle
     free of contacts keeps its full mass and a ball wedged in a rack splits it six ways."""
     dv = jnp.zeros_like(v)
-    if cs is None:
-        return dv, imp
     ct, mu = cs.ct, cs.friction
     on, ot, pn, pt = imp[:4]
     if obs is not None:
@@ -775,7 +770,7 @@ def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, 
 
     on, ot = prev.obs_n, prev.obs_t
     if obs is not None:
-        on, ot = project(obs._replace(n=jnp.moveaxis(obs.n, 1, 0)), on, jnp.moveaxis(ot, 1, 0))
+        on, ot = project(_obstacle_frame(obs), on, jnp.moveaxis(ot, 1, 0))
         ot = jnp.moveaxis(ot, 0, 1)          # back to [Q, dim, *view]
         v = v + w * jnp.sum(obs.n * on[:, None] + ot, 0)
     pn, pt = prev.pair_n, prev.pair_t

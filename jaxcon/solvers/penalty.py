@@ -15,7 +15,7 @@ from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact
-from jaxcon.solvers.common import run_substeps, with_found
+from jaxcon.solvers.common import run_substeps, split_contacts, with_found
 
 #: The spring tension is clipped to +- STRETCH_CLIP * stiffness * rest_length (constraints with rest length
 #: > 0). A stable run never comes near it (it is a 1000% stretch, ten times `jc.diagnose`'s violation limit);
@@ -180,7 +180,7 @@ class Penalty(Solver):
             """Springs, then with contacts (after moving start overlaps out, `_start_overlaps`) the contacts'
             penalty impulses. A grid model's step (`grid_substepped`) hands every substep the step's candidate
             pairs `found`."""
-            ws, prev = (ws, None) if cs is None else ws
+            ws, prev = split_contacts(sys, ws)
             partners = None
             if cs is not None:
                 if found is not None:

@@ -14,8 +14,8 @@ from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact
-from jaxcon.solvers.common import (apply_impulses, clamp_ropes, frames, gamma, row_solve, run_substeps, warm_rows,
-                                   with_contacts, with_found)
+from jaxcon.solvers.common import (apply_impulses, clamp_ropes, frames, gamma, row_solve, run_substeps,
+                                   split_contacts, warm_rows, with_contacts, with_found)
 
 
 def soft_coefficients(hertz, damping_ratio, h):
@@ -132,7 +132,7 @@ class SoftStep(Solver):
         model's step goes through `grid_substepped`, which calls this with its candidate pairs `found`."""
         dtype = x.dtype
         topo, cs, w = sys.topology, sys.contact, sys.w
-        lam, imp = (lam, None) if cs is None else lam
+        lam, imp = split_contacts(sys, lam)
         bias_rate, mass_scale, impulse_scale = soft_coefficients(jnp.asarray(self.hertz, dtype),
                                                                  jnp.asarray(self.damping_ratio, dtype), h)
         v0, v = v, sys.apply_gravity(v, h)
