@@ -29,6 +29,8 @@ import tempfile
 import pytest
 
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
+if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false").strip()
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:     # the controller makes it; the xdist workers inherit it
     os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxcon-test-xla-cache-")
     os.environ["JAXCON_TEST_CACHE_OWNED"] = str(os.getpid())

@@ -92,6 +92,8 @@ def test_bench_writes_json(tmp_path, capsys):
     data = json.loads(path.read_text())
     rows = data["results"]
     assert {r["case"] for r in rows} == {"double_pendulum", "chain_20", "cloth_8x8"}
+    # --f32-only skips the float64 runs, although the suite runs with x64 on (they ran before 2026-11-25)
+    assert {r["dtype"] for r in rows} == {"float32"} and "double_pendulum_best" not in data
     for r in rows:
         assert r["median_s_per_step"] > 0 and r["compile_s"] > 0 and np.isfinite(r["max_violation"])
         assert 0 < r["min_s_per_step"] <= r["median_s_per_step"]

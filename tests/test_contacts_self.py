@@ -108,7 +108,10 @@ def test_a_chain_that_coils_on_the_floor_never_passes_through_itself_2d_float32(
     assert int(np.asarray(traj.contact_overflow).sum()) == 0
     closest, at = _closest(traj.x, joined_at_rest(n, [rods], x, np.full(n, 0.02)), 0.02)
     assert closest >= 1.0, (closest, at)
-    assert float(final.x[:, 1].max()) > 0.1                  # it piled up: beads stacked above the floor row
+    # it piled up: a bead on a third layer or higher (centres 0.02 + 2 * 0.04 sin 60 deg = 0.089 m up, packed). The
+    # pile is chaotic in float32: its top bead ended at 0.1006 and, compiled with XLA's other CPU emitters,
+    # 0.0993 (the closest approach passed in both)
+    assert float(final.x[:, 1].max()) > 0.085
 
 
 @pytest.mark.parametrize("n", [24, 10])
