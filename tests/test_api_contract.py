@@ -6,6 +6,7 @@ import re
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 import optax  # noqa: F401  (part of the contract's imports)
 
 import jaxcon as jc
@@ -141,3 +142,18 @@ def test_steal_fraction():
     if now is not None:                                          # Linux
         steal, total = now
         assert 0 <= steal <= total
+
+
+def test_bench_emitters_runs_each_setting_in_its_own_child(tmp_path):
+    """`bench --emitters`' plumbing on its smallest case: each child runs under the XLA_FLAGS of its setting (the
+    suite's own flag is replaced, not inherited), and the two settings compute the same pendulum to rounding."""
+    from jaxcon.bench import emitters
+    out = emitters.main(repeats=1, rounds=1, out_path=str(tmp_path / "e.json"), cases=("double_pendulum_480",))
+    assert emitters.FLAG in out["xla_flags"]["elemental"].split()
+    assert "xla_cpu_use_fusion_emitters" not in out["xla_flags"]["fusion"]
+    (row,) = out["cases"]
+    assert row["compile_s_fusion"] > 0 and row["compile_s_elemental"] > 0 and row["run_s_elemental"] > 0
+    assert row["max_abs_diff"] < 1e-4                 # float32 positions of bobs 1 m from the pivot
+    assert json.loads((tmp_path / "e.json").read_text())["cases"][0]["case"] == "double_pendulum_480"
+    with pytest.raises(ValueError, match="`cases`: unknown"):
+        emitters.main(cases=("pendulum",))

@@ -26,7 +26,7 @@ DESCRIPTION = """jaxcon: differentiable constrained particle dynamics in JAX.
           and a rest-length identification with jc.fit
   bench   speed against error: median step times after compilation, compile time apart, the error reached,
           batched throughput and gradient compile time; --speed-vs-error sweeps every solver; --contacts runs
-          the disc box against pymunk and Box2D"""
+          the disc box against pymunk and Box2D; --emitters measures XLA's CPU emitters' compile times"""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -68,6 +68,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="instead: issue 25's disc box (N discs dropped into a box, PGS(10) on the grid, float32) "
                         "against pymunk and Box2D 2.3 when installed, in the same run: ms/step, compile time, "
                         "max speed and overlap at 4 s and 8 s (default 64 256 1024; up to 16384)")
+    b.add_argument("--emitters", action="store_true",
+                   help="instead: compile and run time of five programs with XLA's CPU fusion emitters (the "
+                        "default) and without them (XLA_FLAGS=--xla_cpu_use_fusion_emitters=false), in alternating "
+                        "child processes, and the difference of their outputs (JSON to --out)")
     b.add_argument("--out-dir", default="speed_vs_error", metavar="DIR",
                    help="output folder of --speed-vs-error (created if missing; default speed_vs_error)")
     return p
@@ -115,6 +119,10 @@ def main(argv=None) -> int:
     if args.cmd == "bench" and args.contacts is not None:
         from jaxcon.bench.contacts import main as contacts
         contacts(tuple(args.contacts) or (64, 256, 1024))
+        return 0
+    if args.cmd == "bench" and args.emitters:
+        from jaxcon.bench.emitters import main as emitters
+        emitters(args.repeats, out_path=args.out or None)
         return 0
     if args.cmd == "bench" and args.batched is not None:
         from jaxcon.bench.suite import batched_only
