@@ -219,19 +219,20 @@ def _scan(ct: ContactTopology, xf, reach):
     order = jnp.argsort(key)
     count = jnp.zeros((table,), jnp.int32).at[key].add(1)
     start = jnp.cumsum(count) - count                 # each bucket's first position in the sorted order
-    # every surrounding cell at once (offsets [dim, P], P = 3^dim, in itertools.product's order): one gather of
-    # [P, n, scan] entries, not P unrolled copies (a quarter of a grid rollout's gradient program was those)
-    off = jnp.asarray(np.array(list(itertools.product((-1, 0, 1), repeat=dim)), np.int32).T)
-    qc = c[:, None, :] + off[:, :, None]                             # [dim, P, n]
-    qk = _cell_hash(qc, table)
-    lo = start[qk]
-    hi = lo + count[qk]
-    idx = lo[..., None] + jnp.arange(scan)                           # [P, n, scan] positions in the sorted order
-    j = order[jnp.minimum(idx, n - 1)]
-    ok = (idx < hi[..., None]) & jnp.all(c[:, j] == qc[..., None], axis=0)
-    cands = jnp.moveaxis(jnp.where(ok, j, -1), 0, 1).reshape(n, -1)  # [n, P scan], offset by offset
-    missed = jnp.sum(jnp.maximum(hi - lo - scan, 0), axis=0).astype(jnp.int32)
-    return cands, missed, reach
+    # one offset at a time: gathering every surrounding cell at once ([3^dim, n, scan]) cut a grid gradient's
+    # program by a fifth but ran the search 1.4x (1024 discs) to 2x (4096) slower, measured 2026-11-25
+    cands, missed = [], jnp.zeros((n,), jnp.int32)
+    for off in itertools.product((-1, 0, 1), repeat=dim):
+        qc = c + jnp.asarray(off, jnp.int32)[:, None]
+        qk = _cell_hash(qc, table)
+        lo = start[qk]
+        hi = lo + count[qk]
+        idx = lo[:, None] + jnp.arange(scan)[None]                   # [n, scan] positions in the sorted order
+        j = order[jnp.minimum(idx, n - 1)]
+        ok = (idx < hi[:, None]) & jnp.all(c[:, j] == qc[:, :, None], axis=0)
+        cands.append(jnp.where(ok, j, -1))
+        missed = missed + jnp.maximum(hi - lo - scan, 0).astype(jnp.int32)
+    return jnp.concatenate(cands, 1), missed, reach
 
 
 def _select(cs: ContactSystem, scan, close):
