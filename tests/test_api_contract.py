@@ -146,11 +146,15 @@ def test_steal_fraction():
 
 def test_bench_emitters_runs_each_setting_in_its_own_child(tmp_path):
     """`bench --emitters`' plumbing on its smallest case: each child runs under the XLA_FLAGS of its setting (the
-    suite's own flag is replaced, not inherited), and the two settings compute the same pendulum to rounding."""
+    suite's own flag is replaced, not inherited), on the CPU at XLA's default effort without the suite's
+    persistent cache, and the two settings compute the same pendulum to rounding."""
     from jaxcon.bench import emitters
     out = emitters.main(repeats=1, rounds=1, out_path=str(tmp_path / "e.json"), cases=("double_pendulum_480",))
-    assert emitters.FLAG in out["xla_flags"]["elemental"].split()
-    assert "xla_cpu_use_fusion_emitters" not in out["xla_flags"]["fusion"]
+    child = out["children"]
+    assert emitters.FLAG in child["elemental"]["xla_flags"].split()
+    assert "xla_cpu_use_fusion_emitters" not in child["fusion"]["xla_flags"]
+    for c in child.values():     # not the suite's settings: XLA's default effort, no persistent cache, the CPU
+        assert c["backend"] == "cpu" and not c["disable_most_optimizations"] and not c["compilation_cache_dir"]
     (row,) = out["cases"]
     assert row["compile_s_fusion"] > 0 and row["compile_s_elemental"] > 0 and row["run_s_elemental"] > 0
     assert row["max_abs_diff"] < 1e-4                 # float32 positions of bobs 1 m from the pivot

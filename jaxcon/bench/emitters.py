@@ -74,7 +74,9 @@ def child(repeats: int, cases=CASES):
     under, as one JSON line."""
     import jax
     jax.config.update("jax_enable_x64", True)        # the cases pick their dtypes themselves
-    out = {"xla_flags": os.environ.get("XLA_FLAGS", "")}
+    out = {"xla_flags": os.environ.get("XLA_FLAGS", ""), "backend": jax.default_backend(),
+           "disable_most_optimizations": bool(jax.config.values.get("jax_disable_most_optimizations")),
+           "compilation_cache_dir": jax.config.values.get("jax_compilation_cache_dir")}
     for name in cases:
         fn, arg = _case(name)
         t0 = time.perf_counter()
@@ -96,11 +98,17 @@ def _run_child(off: bool, repeats: int, cases) -> dict:
     env["XLA_FLAGS"] = (flags + (" " + FLAG if off else "")).strip()
     for key in ("JAX_DISABLE_MOST_OPTIMIZATIONS", "JAX_COMPILATION_CACHE_DIR", "JAX_ENABLE_COMPILATION_CACHE"):
         env.pop(key, None)                                   # XLA's default effort, nothing read from a cache
+    env["JAX_PLATFORMS"] = "cpu"                             # the flag is the CPU backend's, also on a GPU host
     code = f"from jaxcon.bench.emitters import child; child({int(repeats)}, {tuple(cases)!r})"
     done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise RuntimeError(f"the {'elemental' if off else 'fusion'}-emitter child failed:\n{done.stderr[-3000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _setting(run: dict) -> dict:
+    """What a child ran under: its XLA_FLAGS, backend, effort and persistent cache."""
+    return {k: run[k] for k in ("xla_flags", "backend", "disable_most_optimizations", "compilation_cache_dir")}
 
 
 def main(repeats: int = 5, rounds: int = ROUNDS, out_path: str | None = None, cases=CASES) -> dict:
@@ -111,8 +119,8 @@ def main(repeats: int = 5, rounds: int = ROUNDS, out_path: str | None = None, ca
         raise ValueError(f"`cases`: unknown {unknown}; choose from {list(CASES)}")
     info = machine()
     print(f"XLA CPU fusion emitters on (the default) and off ({FLAG}), {rounds} alternating child processes of "
-          f"each, XLA's default effort, median of {repeats} runs after compilation; {info['cpu']}, "
-          f"{info['cores']} cores, jax {info['jax']} on {info['platform']}")
+          f"each, XLA's default effort, CPU backend, median of {repeats} runs after compilation; {info['cpu']}, "
+          f"{info['cores']} cores, jax {info['jax']}")
     runs = {False: [], True: []}
     for _ in range(rounds):
         for off in (False, True):
@@ -137,7 +145,7 @@ def main(repeats: int = 5, rounds: int = ROUNDS, out_path: str | None = None, ca
     print("compile: lower + compile seconds of a fresh jax.jit; ratio: off / on (below 1: the flag is faster); "
           "|diff|: largest difference of the outputs between the two settings")
     result = {"machine": info, "flag": FLAG, "rounds": rounds, "repeats": repeats, "cases": rows,
-              "xla_flags": {"fusion": runs[False][0]["xla_flags"], "elemental": runs[True][0]["xla_flags"]}}
+              "children": {"fusion": _setting(runs[False][0]), "elemental": _setting(runs[True][0])}}
     if out_path:
         with open(out_path, "w") as f:
             json.dump(result, f, indent=1)
