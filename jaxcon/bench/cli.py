@@ -71,7 +71,7 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("--emitters", action="store_true",
                    help="instead: compile and run time of five programs with XLA's CPU fusion emitters (the "
                         "default) and without them (XLA_FLAGS=--xla_cpu_use_fusion_emitters=false), in alternating "
-                        "child processes, and the difference of their outputs (JSON to --out, which defaults to bench.json)")
+                        "child processes, and the difference of their outputs (JSON to --out, default bench.json)")
     b.add_argument("--out-dir", default="speed_vs_error", metavar="DIR",
                    help="output folder of --speed-vs-error (created if missing; default speed_vs_error)")
     return p
