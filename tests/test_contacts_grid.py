@@ -248,3 +248,30 @@ def test_a_pair_the_second_solve_still_misses_is_counted():
     assert int(traj.contact_overflow[0]) > 0
     xs = np.asarray(traj.x[:, :, 0])
     assert np.all(np.diff(xs[:, [1, 0, 2, 3]], axis=1) > 0)                  # none passed through another
+
+
+def test_contact_passes_sets_the_position_pass_count():
+    """`PGS(contact_passes=k)` runs k position passes per step: None is the grid's default
+    (`contact.GRID_OVERLAP_PASSES`, bitwise the same step), and one pass leaves more of the start overlaps
+    (the staggered rows start 14% of a diameter into each other) than the default's passes do. Bad counts are
+    refused with the argument named."""
+    from jaxcon.solvers import contact
+    pts = [[R + 0.05 + c * 2.02 * R + (r % 2) * R, R + 0.002 + 0.07 * r] for r in range(4) for c in range(5 - r % 2)]
+    model, state = jc.build(np.asarray(pts), np.ones(len(pts)), radius=R, collide="grid", planes=BOX, friction=0.3)
+
+    def deepest(solver):
+        x = np.asarray(jc.rollout(model, state, solver, 1 / 120, 1)[0].x)
+        d = np.linalg.norm(x[:, None] - x[None], axis=-1) + np.eye(len(x)) * 10
+        return float((2 * R - d).max()) / (2 * R), x
+
+    start = np.linalg.norm(np.asarray(state.x)[:, None] - np.asarray(state.x)[None], axis=-1) + np.eye(18) * 10
+    assert (2 * R - start.min()) / (2 * R) > 0.13
+    (ov_default, x_default), (ov_all, x_all) = (deepest(jc.PGS(10)),
+                                                deepest(jc.PGS(10, contact_passes=contact.GRID_OVERLAP_PASSES)))
+    ov_one, _ = deepest(jc.PGS(10, contact_passes=1))
+    assert np.array_equal(x_default, x_all)
+    assert ov_default < 0.03 and ov_one > 3 * ov_default, (ov_default, ov_one)      # seen: 2.0% and 17%
+    with pytest.raises(ValueError, match="PGS: `contact_passes` must be >= 1, got 0"):
+        jc.PGS(contact_passes=0)
+    with pytest.raises(TypeError, match="`contact_passes` must be a Python int"):
+        jc.PGS(contact_passes=2.0)

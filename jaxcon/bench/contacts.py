@@ -6,7 +6,8 @@ N discs (R = 0.5 m, 1 kg, friction 0.5, restitution 0) in staggered rows 1 m abo
 (`jc.scenes.disc_box`) fall and come to rest; dt = 1/60 s, 8 s simulated, 10 velocity iterations everywhere:
 
 * jaxcon: `jc.scenes.disc_box(N, collide="grid")` (the neighbour grid), `jc.PGS(10)`, float32, and
-  `jc.PGS(10, substeps=2)` (its substeps share the step's one neighbour search), which rests at 4096 discs;
+  `jc.PGS(10, substeps=2)` (its substeps share the step's one neighbour search), which rests at 4096 discs,
+  and `jc.PGS(10, substeps=3, contact_passes=1)`, which rests there with every overlap under 5% of R;
 * pymunk (Chipmunk 7): `space.iterations = 10`, `collision_slop = 0.005` m (Box2D's linear slop; pymunk's
   default, 0.1 m, is meant for pixels and lets discs of 0.5 m sink 20% of R into each other), friction
   sqrt(0.5) on every shape (pymunk multiplies the two shapes' values: 0.5 per contact), no sleeping;
@@ -106,7 +107,8 @@ def run_jaxcon(n, seconds=SECONDS, solver=None, name="jaxcon", **scene):
     solver = PGS(10) if solver is None else solver
     model, state = disc_box(n, dtype=np.float32, **scene)
     _, width = disc_box_layout(n)
-    out = _Run(name, f"PGS({solver.iterations}, substeps={solver.substeps}) grid float32")
+    passes = "" if solver.contact_passes is None else f", contact_passes={solver.contact_passes}"
+    out = _Run(name, f"PGS({solver.iterations}, substeps={solver.substeps}{passes}) grid float32")
     fn = jax.jit(lambda s: rollout(model, s, solver, DT, CHUNK, save_every=CHUNK)[0])
     t0 = time.perf_counter()
     compiled = fn.lower(state).compile()
@@ -186,7 +188,8 @@ def run_pymunk(n, seconds=SECONDS):
 
 PEERS = (("Box2D", "Box2D", run_box2d), ("pymunk", "pymunk", run_pymunk))
 #: jaxcon's configurations: the issue's PGS(10), and PGS(10) with 2 substeps (the one that rests at 4096 discs)
-JAXCON = (("jaxcon", 10, 1), ("jaxcon 2 substeps", 10, 2))
+#: jaxcon's configurations: (name, iterations, substeps, contact_passes or None for the default)
+JAXCON = (("jaxcon", 10, 1, None), ("jaxcon 2 substeps", 10, 2, None), ("jaxcon 3 substeps 1 pass", 10, 3, 1))
 
 
 def main(sizes=(64, 256, 1024), seconds=SECONDS):
@@ -206,7 +209,7 @@ def main(sizes=(64, 256, 1024), seconds=SECONDS):
     results = []
     for n in sizes:
         from jaxcon.solvers.pgs import PGS
-        ours = [run_jaxcon(n, seconds, PGS(it, substeps=sub), name) for name, it, sub in JAXCON]
+        ours = [run_jaxcon(n, seconds, PGS(it, substeps=sub, contact_passes=cp), name) for name, it, sub, cp in JAXCON]
         runs = ours + [fn(n, seconds) for _, fn in peers]
         costs = {}
         for r in runs:
