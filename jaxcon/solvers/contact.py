@@ -141,7 +141,8 @@ GRID_SCAN = 2
 #: PGS's position safety passes for a grid model. Its slot-by-slot passes converge more slowly than the rounds'
 #: Gauss-Seidel ones: on 18 discs in 4 staggered rows landing on a floor (PGS(10), dt 1/120) the deepest overlap
 #: was 0.86% of a diameter with 8 passes, 0.30% with 16 and 0.12% with 32 (all pairs: 0.03% with 8); a pass
-#: costs K small steps over n particles, against n - 1 rounds for all pairs.
+#: costs K small steps over n particles, against n - 1 rounds for all pairs. `PGS(contact_passes=k)` overrides
+#: it: with substeps, the passes' lifts kept a deep pile flowing, and one pass lets it rest (docs/contacts.md).
 GRID_OVERLAP_PASSES = 32
 
 #: A grid model's position passes stop after one that moved no particle by more than this fraction of the slop
