@@ -30,10 +30,11 @@ def _scenes():
     # parity-split blocks of its unrolled layout, so the comparison spans both layouts
     yield "cloth", jc.scenes.cloth(4, 4)
     yield "rope_chain", jc.scenes.chain(5, kind="rope")
-    # an irregular graph: gather blocks, rods and two ropes, one taut (stretched 5% past its rest length) and one
-    # slack (5% short of it) for the 12 steps. A rope near its rest length (C ~ 0) is where a slack rope's rigid
-    # speculative row meets a taut one's soft row (SoftStep, as Box2D): the layouts' rounding of |d| picked a
-    # branch each there (seen: 2e-5 apart), so neither rope starts or ends near it
+    # an irregular graph: gather blocks, rods and two ropes, one starting stretched 5% past its rest length and
+    # one 5% short of it (slack for the 12 steps in every solver). A rope near its rest length (C ~ 0) is where a
+    # slack rope's rigid speculative row meets a taut one's soft row (SoftStep, as Box2D): the layouts' rounding
+    # of |d| picked a branch each there (seen: 2e-5 apart), so neither starts near it, and SoftStep's stretched
+    # rope stays taut (PGS's goes slack, where its two layouts agree bitwise)
     x0 = rng.normal(size=(7, 3))
     rods, ropes = [(0, 3), (3, 5), (5, 1), (1, 6), (2, 4), (4, 0)], [(6, 2), (5, 2)]
     rest = ([np.linalg.norm(x0[i] - x0[j]) for i, j in rods]

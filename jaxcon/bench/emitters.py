@@ -60,7 +60,7 @@ def _case(name):
 
         def shot(v0):
             final, _ = rollout(model, state.replace(v=state.v.at[0].set(v0)), PGS(10), 1 / 120, 120,
-                                  save_every=120)
+                               save_every=120)
             return jnp.sum(final.x[2] ** 2)
         return jax.grad(shot), jnp.array([3.5, 0.08])
     if name == "disc_box_1024_15":

@@ -708,9 +708,10 @@ def jacobi_counts(cs: ContactSystem, v, obs: Rows, pairs: Rows, imp: Impulses, b
 
 
 def jacobi_pass(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, imp: Impulses, count, relax):
-    """Every contact row updated from the same `v` (Jacobi), each by `_solve_row`: (dv, imp). A row between particles i and j takes the effective mass 1 / (c_i w_i + c_j w_j) with the
-    per-particle counts `count` [1, *view] (mass splitting, `jacobi_counts`; an obstacle has no inverse mass:
-    1 / (c_i w_i)), or relax * k with a fixed relaxation (`count` None).
+    """Every contact row updated from the same `v` (Jacobi), each by `_solve_row`: (dv, imp). A row between
+    particles i and j takes the effective mass 1 / (c_i w_i + c_j w_j) with the per-particle counts `count`
+    [1, *view] (mass splitting, `jacobi_counts`; an obstacle has no inverse mass: 1 / (c_i w_i)), or relax * k
+    with a fixed relaxation (`count` None).
 
     Mass splitting (Tonge, Benevolenski and Voroshilov 2012, "Mass splitting for jitter-free parallel rigid body
     simulation") is the momentum-conserving form of the constraint averaging of Macklin et al. 2014. A particle
