@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import jaxcon as jc
-from jaxcon.solvers import contact as contact_module
+from jaxcon.core import contact_rows as rows_module
 
 G = 9.81
 
@@ -258,7 +258,7 @@ def test_models_without_contacts_trace_no_contact_code(monkeypatch):
     def boom(*args, **kwargs):
         raise AssertionError("contact code traced")
 
-    monkeypatch.setattr(contact_module, "rows", boom)
+    monkeypatch.setattr(rows_module, "rows", boom)
     model, state = jc.scenes.chain(n_links=4)
     jax.make_jaxpr(lambda s: jc.rollout(model, s, jc.PGS(), 1 / 240, 2))(state)
     assert state.contact_n is None and model.contact is None

@@ -176,7 +176,7 @@ def test_contacts_within_rounding_of_touching_do_not_depend_on_the_rounding():
     pair, each approached at 1 m/s with its gap at +-1e-16 m."""
     from jaxcon.core import layout
     from jaxcon.core.system import System
-    from jaxcon.solvers import contact
+    from jaxcon.core import contact_rows
 
     r, h = 0.1, 1 / 60
     # particle 0 on the floor, 1 on a sphere's top, 3 on 2 (pair 2-3), far apart
@@ -189,7 +189,7 @@ def test_contacts_within_rounding_of_touching_do_not_depend_on_the_rounding():
 
     def row_values(x):
         xi, vi = layout.particles_in(t, x), layout.particles_in(t, jnp.asarray(v))
-        obs, pairs = contact.rows(sys_.contact, sys_.w, xi, vi, vi, 0.2, h)
+        obs, pairs = contact_rows.rows(sys_.contact, sys_.w, xi, vi, vi, 0.2, h)
         return (obs.target, obs.toi, obs.gap, pairs.target, pairs.toi, pairs.gap)
 
     tangent = jnp.asarray(np.random.default_rng(1).normal(size=base.shape))

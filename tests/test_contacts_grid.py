@@ -111,7 +111,7 @@ def test_candidates_skip_joined_pairs_and_list_each_pair_once():
     from jaxcon.core import layout
     from jaxcon.core.system import System
     from jaxcon.core.contact import partners_out
-    from jaxcon.solvers.contact import neighbours
+    from jaxcon.core.grid import neighbours
 
     # in a row, each touching the next: 2, 0, 1, 4, with 0-1 joined by a rod; 3 far away
     x = np.array([[0.1, 0.0], [0.2, 0.0], [0.0, 0.0], [5.0, 0.0], [0.3, 0.0]])

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import jaxcon as jc
+from jaxcon.core import contact_rows as rows_module
 from jaxcon.solvers import contact as contact_module
 from jaxcon.solvers import penalty as penalty_module
 
@@ -260,7 +261,8 @@ def test_models_without_contacts_trace_no_contact_code(monkeypatch):
     # every contact stage a solver's one (sub)step can reach: the rows, their warm start and sweeps at velocity
     # and position level, the time of impact and the position pass (`contact.sweep` itself returns at once
     # without contacts, so its rows' update is patched)
-    for name in ("rows", "warm_start", "_solve_row", "jacobi_pass", "jacobi_counts", "soft_rows", "position_pass",
+    monkeypatch.setattr(rows_module, "rows", boom)
+    for name in ("warm_start", "_solve_row", "jacobi_pass", "jacobi_counts", "soft_rows", "position_pass",
                  "position_velocity_pass", "impact_times", "project_overlaps"):
         monkeypatch.setattr(contact_module, name, boom)
     monkeypatch.setattr(penalty_module, "_contact_impulses", boom)

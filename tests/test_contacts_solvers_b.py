@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import jaxcon as jc
-from jaxcon.solvers import contact as contact_module
+from jaxcon.core import contact_rows as rows_module
 
 G = 9.81
 JACOBI, SOFT = jc.Jacobi(20), jc.SoftStep()
@@ -219,7 +219,7 @@ def test_models_without_contacts_trace_no_contact_code(solver, monkeypatch):
     def boom(*args, **kwargs):
         raise AssertionError("contact code traced")
 
-    monkeypatch.setattr(contact_module, "rows", boom)
+    monkeypatch.setattr(rows_module, "rows", boom)
     model, state = jc.scenes.chain(n_links=4)
     jax.make_jaxpr(lambda s: jc.rollout(model, s, solver, 1 / 240, 2))(state)
     model, state = _column(2)

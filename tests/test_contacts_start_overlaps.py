@@ -1,6 +1,6 @@
 """Particles that start inside an obstacle or another particle (issue 22): every contact solver pushes them out
-in a defined direction (the last axis, up, where the centres coincide: `contact.direction`), at no more than
-`contact.PUSH_OUT_SPEED` (Box2D's 3 m/s cap), and never with more kinetic energy than that push-out's.
+in a defined direction (the last axis, up, where the centres coincide: `contact_rows.direction`), at no more than
+`contact_rows.PUSH_OUT_SPEED` (Box2D's 3 m/s cap), and never with more kinetic energy than that push-out's.
 
 Before: a particle at a sphere's exact centre fell straight through it (no normal); one 0.3 R off the centre of a
 1 m sphere left at beta C / h (38 m/s with PGS(10, substeps=4), z = 58 m after 2 s), and Penalty's spring flung
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import jaxcon as jc
-from jaxcon.solvers.contact import PUSH_OUT_SPEED
+from jaxcon.core.contact_rows import PUSH_OUT_SPEED
 
 R, r = 0.5, 0.05
 MASSES = np.array([1.0, 1.0, 1.0, 3.0])

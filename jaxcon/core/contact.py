@@ -9,7 +9,7 @@ A model may have three kinds of contact, each a unilateral constraint on a gap C
 Pairs come from one of two places. A static list (``collide=True`` up to `MAX_ALL_PAIRS_PARTICLES`
 particles, or the user's own pairs) is split into rounds at build time, as below. A neighbour grid
 (``collide="grid"``, or ``collide=True`` above that size) finds the pairs inside every (sub)step instead:
-each particle keeps up to K = ``max_neighbours`` partners (`jaxcon.solvers.contact.neighbours`), and the
+each particle keeps up to K = ``max_neighbours`` partners (`jaxcon.core.grid.neighbours`), and the
 pairs are solved slot by slot (the rows of one slot together, with mass splitting).
 
 Obstacle contacts need no broad phase: each obstacle's contacts are solved together, vectorised over every

@@ -9,6 +9,9 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from jaxcon.core import contact_rows
+from jaxcon.core.contact import zero_impulses
+from jaxcon.core import grid
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
 from jaxcon.core.substeps import substepped
@@ -401,7 +404,7 @@ def grid_substepped(sys, substep, substeps: int, x, v, lam, dt):
 def grid_step(sys, x, v, dt, solve, substeps: int = 1):
     """A step of a model with a neighbour grid, `solve(found) -> (x, v, (lam, imp), trail)` being the solver's
     step (all its substeps, `substepped`) with the candidate pairs `found` = (partners, overflow)
-    (`contact.neighbours`), and `trail` [substeps, *x.shape] the positions after each substep.
+    (`grid.neighbours`), and `trail` [substeps, *x.shape] the positions after each substep.
 
     The search takes the velocities after the step's gravity, but an impact within the step can send a
     particle into one that was no candidate: three discs in a row, B hitting A at 30 m/s with A 5 cm from C,
@@ -411,12 +414,12 @@ def grid_step(sys, x, v, dt, solve, substeps: int = 1):
     GRID_SKIN min(r) from a common offset (the middle of their range: a pile that stops as one keeps it), no
     other pair can have touched, and the step stands. Otherwise a second search lists the pairs that come
     within r_i + r_j of each other on the straight lines from the start to the end positions
-    (`contact.path_search`). With substeps a particle's path is the polyline through its positions after each
+    (`grid.path_search`). With substeps a particle's path is the polyline through its positions after each
     substep, straight within a substep: its distance from the chord at equal times is largest at a vertex, so
     each particle's r is widened by its largest vertex distance from the chord (0 for one substep; a cloth that
     lands keeps it small, where the distance from the free path is its whole fall in the step). If such a pair
-    was not solved (`contact.unsolved`), the step is solved again from its start with both lists' pairs
-    (`contact.merge_partners`), up to GRID_ATTEMPTS solves, and what the last check still finds is counted in
+    was not solved (`grid.unsolved`), the step is solved again from its start with both lists' pairs
+    (`grid.merge_partners`), up to GRID_ATTEMPTS solves, and what the last check still finds is counted in
     the overflow, with the touching pairs the second search had no slot for (an upper bound). One traced copy
     of the solve, in a loop of `lax.cond`s (under `vmap` every branch runs: GRID_ATTEMPTS solves per step)."""
     cs = sys.contact
@@ -424,7 +427,7 @@ def grid_step(sys, x, v, dt, solve, substeps: int = 1):
     dim = x.shape[0]
     v_free = sys.apply_gravity(v, dt)
     r_min = lax.stop_gradient(jnp.min(cs.radius_flat))
-    found, scan = contact.grid_search(cs, x, v_free, dt)
+    found, scan = grid.grid_search(cs, x, v_free, dt)
     x0, v0 = lax.stop_gradient(x), lax.stop_gradient(v)
     g = lax.stop_gradient(sys.apply_gravity(jnp.zeros_like(v), 1.0))
     k = jnp.arange(1, substeps + 1, dtype=x.dtype).reshape((substeps,) + (1,) * x.ndim)
@@ -441,17 +444,17 @@ def grid_step(sys, x, v, dt, solve, substeps: int = 1):
         partners, over, _, _ = carry
         out = solve((partners, over))
         trail = out[3]
-        stays = jnp.max(spread(trail - free)) <= contact.GRID_SKIN * r_min
+        stays = jnp.max(spread(trail - free)) <= grid.GRID_SKIN * r_min
 
         def verify(_):
             margin = None
             if substeps > 1:
                 chord = x0 + (k / substeps) * (trail[-1] - x0)
                 margin = jnp.max(jnp.sqrt(jnp.sum((trail - chord).reshape(substeps, dim, -1) ** 2, 1)), 0)
-            wide = contact.path_search(cs, x, out[0], dt, scan, margin)
-            missed = contact.unsolved(wide[0], partners)
+            wide = grid.path_search(cs, x, out[0], dt, scan, margin)
+            missed = grid.unsolved(wide[0], partners)
             last = i == GRID_ATTEMPTS - 1
-            both, dropped = contact.merge_partners(partners, wide[0])
+            both, dropped = grid.merge_partners(partners, wide[0])
             return both, over + dropped, wide[1] + jnp.where(last, missed, 0), (missed > 0) & ~last
 
         partners, over, count, again = lax.cond(stays, lambda _: (partners, over, over, jnp.zeros((), bool)),
@@ -485,7 +488,7 @@ class Begin(NamedTuple):
 def step_begin(sys, x, v, lam_ws, beta, h, split, warm: bool, factor=1.0, gradient: bool = True,
                found=None, contact_slop=0.0) -> Begin:
     """Gravity, the constraints' frames and biases (`split`: split impulses' slop share, or None), the contact
-    rows (which keep `contact_slop` of overlap, `contact.rows`) where the model has contacts, and the warm start
+    rows (which keep `contact_slop` of overlap, `contact_rows.rows`) where the model has contacts, and the warm start
     of every row (scaled by `factor`; no gradient through it unless `gradient`). `lam_ws` is what the solver
     carries (`with_contacts`). A grid model passes its candidate pairs `found` = (partners, overflow)
     (`grid_step`)."""
@@ -498,11 +501,11 @@ def step_begin(sys, x, v, lam_ws, beta, h, split, warm: bool, factor=1.0, gradie
     v_free = v
     obs = pairs = imp = None
     if cs is not None:
-        obs, pairs = contact.rows(cs, sys.w, x, v0, v, beta, h, None if found is None else found[0], contact_slop)
+        obs, pairs = contact_rows.rows(cs, sys.w, x, v0, v, beta, h, None if found is None else found[0], contact_slop)
     if not warm:
         lam = tuple(jnp.zeros_like(f.C) for f in fr)
         if cs is not None:
-            imp = contact.zero_impulses(topo, cs.ct, x.dtype)
+            imp = zero_impulses(topo, cs.ct, x.dtype)
     else:
         v, lam = warm_start(sys, v, fr, lam_ws, h, factor, gradient)
         if cs is not None:
@@ -543,7 +546,7 @@ def solve_phases(sys, v_free, obs, pairs, iterations: int, carry, body):
         return carry, saved
 
     bounced, compressed = lax.fori_loop(0, total, one, (carry, carry))
-    s = contact.restitution_scale(sys.w, v_free, compressed[0], bounced[0], contact.bouncing(obs, pairs))
+    s = contact.restitution_scale(sys.w, v_free, compressed[0], bounced[0], contact_rows.bouncing(obs, pairs))
 
     def mix(a, b):       # integer leaves (a neighbour grid's partners and overflow) are the same in both phases
         return a + s * (b - a) if jnp.issubdtype(a.dtype, jnp.floating) else b

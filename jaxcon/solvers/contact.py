@@ -1,142 +1,39 @@
-"""The contact kind (docs/contacts.md): its rows as unilateral velocity constraints with friction, their update
-in every solver that takes contacts (Gauss-Seidel `sweep`, SoftStep's `soft_rows`, Jacobi's `jacobi_pass`, the
-position-level `position_pass` of XPBD), warm start, time of impact, the neighbour grid's search and the position
-safety pass.
+"""The contact rows' updates in every solver that takes contacts (docs/contacts.md): Gauss-Seidel (`sweep`, with
+SoftStep's soft rows from `soft_rows`), Jacobi with mass splitting (`jacobi_pass`), the position level of XPBD
+(`position_pass`, `position_velocity_pass`), the warm start, the restitution phases' energy bound, the
+time-of-impact correction and the position safety pass (`project_overlaps`). The rows themselves are the contact
+kind's (`jaxcon.core.contact_rows`), and a grid model's pairs come from `jaxcon.core.grid`.
 
-Each contact has a unit normal n (from the obstacle, or from the pair's first particle, towards the particle
-that is pushed), a gap C (< 0: overlap) and an accumulated normal impulse lam_n >= 0 with a friction impulse
-lam_t in the tangent plane, |lam_t| <= mu lam_n. Per (sub)step of length h, with vn the approach velocity
-measured before the solve (after gravity):
-
-* Speculative contact (Box2D): a separated contact (C > 0) that does not close within the step only asks
-  vn' >= -C / h: it may close the gap, never more, so nothing tunnels.
-* Impact: a separated contact that would close within the step (C + h vn < 0) hits at time of impact
-  toi = C / -vn. Its target is the bounce velocity e u (0 when the impact speed u is below
-  `restitution_threshold`) plus what the external forces add after the impact (`_targets`), and after
-  the solve the positions are corrected as if the impulse had acted at toi instead of at the start of the
-  step: x += -toi * (velocity change from that contact's impulse) (DiffTaichi's time-of-impact correction).
-  This makes positions and their gradients those of an impact at the right time: an elastic ball dropped on
-  the ground has d y_T / d y_0 = -1 instead of +1.
-* Touching or overlapping (C <= 0): vn' >= max(bounce, -beta C / h) (Baumgarte push-out of the overlap).
-
-Friction is solved after each contact's normal row, as a 2-D or 3-D vector clamped to the Coulomb disc.
-
-Neighbour grid (a model built with ``collide="grid"``, or ``collide=True`` above 256 particles; one search per
-step, shared by its substeps, `common.grid_substepped`): the pairs are
-found at the start of every step by `neighbours` (a spatial hash of the positions) and kept in K slots per
-particle; their rows are those above, with `Rows.i`/`Rows.j` [n, K] naming the particles (j = -1: empty slot,
-k = 0). A PGS sweep solves them after the obstacles slot by slot, the rows of one slot together with mass
-splitting (`grid_pass`); the position safety pass projects them the same way, and the warm start matches last
-step's impulses by partner (a slot's impulse is carried over only if the same pair is listed again).
-`Impulses.partners` [n, K] and `Impulses.overflow` (the candidates that did not fit) travel with the impulses.
-The time-of-impact correction applies to grid pairs as to listed ones. After the solve, `common.grid_step`
-checks that no unlisted pair touched on the paths the solve gave (`path_search`, `unsolved`), solving the
-step again with those pairs if one did.
-
-Start overlaps (a particle inside an obstacle or another particle) are pushed out at no more than
-`PUSH_OUT_SPEED`, along `direction` (the last axis where the centres coincide). Gaps within rounding of 0
-(`_gap`) are classified the same way by every program that computes them, so that forward and reverse mode
-agree. `ContactSystem.from_model` makes every leaf NaN when one holds a value `Model` refuses.
+Each contact row has a unit normal n, a target velocity and an accumulated normal impulse lam_n >= 0 with a
+friction impulse lam_t in the tangent plane, |lam_t| <= mu lam_n. Its normal update is the one every
+sequential-impulse solver uses: lam_n += k (target - vn), clamped >= 0; friction follows, solved as a 2-D or
+3-D vector clamped to the Coulomb disc.
 """
 from __future__ import annotations
 
-from typing import Any, NamedTuple, Optional
-
-import itertools
+from typing import Any, Optional
 
 import jax.numpy as jnp
-import numpy as np
 from jax import lax
 
 from jaxcon.core import layout as L
-from jaxcon.core.contact import (  # noqa: F401  (the contact data types the solvers use, re-exported here)
-    ContactSystem,
-    ContactTopology,
-    Impulses,
-    zero_impulses,
+from jaxcon.core.contact import ContactSystem, Impulses
+from jaxcon.core.contact_rows import (
+    Rows,
+    direction,
+    dot as _dot,
+    length as _length,
+    obstacle_gap,
+    overlap_normal,
+    pair_gap,
+    pair_index,
+    pair_total,
+    velocity_rows,
 )
+
 
 Array = Any
 
-
-class Rows(NamedTuple):
-    """Contact rows of one (sub)step: normal n, target velocity `target`, effective mass k, inverse-mass sum
-    winv, time of impact `toi` (0 unless an impact happens within the step), gap, and `target_c`: the target
-    without restitution (the compression phase; None for solvers that do not split the solve). Grid pair rows
-    also carry their particles i, j [n, K] (internal indices, j = -1 for an empty slot); None otherwise. `near`:
-    touching or within rounding of it (an impact of such a contact is one of a touching contact, `_gap`).
-    `warm`: the rows the warm start applies last step's impulse to (touching, an impact, or a pair within the
-    solver's slop of touching)."""
-
-    n: Array
-    target: Array
-    k: Array
-    winv: Array
-    toi: Array
-    gap: Array
-    target_c: Array = None
-    i: Array = None
-    j: Array = None
-    near: Array = None
-    warm: Array = None
-
-
-def _dot(a, b):
-    """Sum of a * b over the leading (dim) axis, written out component by component (`layout.dot0`). On XLA's
-    CPU backend `jnp.sum(a * b, 0)` of gathered operands ([dim, n, M] from x[:, j]) becomes a reduction kernel
-    that gathers again for every element: the grid search's distance test of the 1024-disc box took 6.5 ms
-    that way and 0.26 ms written out."""
-    return L.dot0(a, b)
-
-
-def _length(d):
-    """`layout.safe_length` with `_dot`: (length, 1 / length) along the leading axis, both 0 at zero length."""
-    d2 = _dot(d, d)
-    ok = d2 > L.min_length2(d.dtype)
-    inv = jnp.where(ok, lax.rsqrt(jnp.where(ok, d2, 1)), 0)
-    return d2 * inv, inv
-
-
-def _norm(d):
-    """`layout.safe_norm` along the leading axis with `_dot`: (length, unit direction, 0 at zero length)."""
-    dist, inv = _length(d)
-    return dist, d * inv
-
-
-def direction(d):
-    """(length [...], unit direction [dim, ...]) of contact vectors d [dim, ...] (from the first body to the
-    second) as `layout.safe_norm`, except that where d is 0 (coincident centres: a particle started at a
-    sphere's centre, or on another particle) the direction is +e_last, the last axis (y in 2-D, z in 3-D: up
-    for the default gravity), so that the overlap is still pushed out: the second body upwards. Its derivative
-    there is 0."""
-    dist, n = _norm(d)
-    up = jnp.zeros((d.shape[0],) + (1,) * (d.ndim - 1), d.dtype).at[-1].set(1)
-    return dist, jnp.where(dist > 0, n, up)
-
-
-def overlap_normal(d0, d, R):
-    """(unit normal, gap) of contacts at distance vectors d [dim, ...] (touching at |d| = R) for a position
-    level solver (XPBD) whose contacts also had d0 at the start of the substep: the normal of d
-    (`direction`), except for a contact that already overlapped at the start (a particle started inside a
-    sphere or another particle), which keeps the start's normal and the gap along it, n0 . d - R, so that it
-    leaves by the nearest surface of where it was (upwards from the exact centre), not by the side that
-    gravity's prediction happened to move it towards."""
-    dist0, n0 = direction(d0)
-    dist, n = direction(d)
-    deep = dist0 - R < -_tolerance(_magnitude(d0) + R)
-    return jnp.where(deep, n0, n), jnp.where(deep, _dot(n0, d), dist) - R
-
-
-# ---- the neighbour grid -----------------------------------------------------------------------------------------
-#: The grid's candidate distance is (1 + GRID_SKIN) (r_i + r_j) + h |v_j - v_i|: every pair that can touch
-#: within the step on straight paths, plus a skin for velocities that change during the solve.
-GRID_SKIN = 0.25
-
-#: Entries of each neighbouring cell's bucket a particle scans, per slot: GRID_SCAN * K. A bucket holding more
-#: counts its extra entries as overflow (they might have been candidates). At 1 a dense pack of equal discs
-#: overflowed as soon as the cells grew with the relative speed (K = 8 discs per cell, a cell side of about
-#: 1.4 diameters); at 2 a cell may be twice as wide.
-GRID_SCAN = 2
 
 #: PGS's position safety passes for a grid model. Its slot-by-slot passes converge more slowly than the rounds'
 #: Gauss-Seidel ones: on 18 discs in 4 staggered rows landing on a floor (PGS(10), dt 1/120) the deepest overlap
@@ -145,6 +42,7 @@ GRID_SCAN = 2
 #: it: with substeps, the passes' lifts kept a deep pile flowing, and one pass lets it rest (docs/contacts.md).
 GRID_OVERLAP_PASSES = 32
 
+
 #: A grid model's position passes stop after one that moved no particle by more than this fraction of the slop
 #: times the smallest radius (`project_overlaps`). Measured on the 1024-disc box (docs/contacts.md): 0.1 with
 #: the push-out beyond two slops (`PUSH_SLOPS`) rests by 5 s at 12 ms per step; 0.1 with the push-out beyond one
@@ -152,378 +50,6 @@ GRID_OVERLAP_PASSES = 32
 #: push-out beyond six slops, 0.5 and 1.0 saved no time (6.5 and 6.6 ms per step against 6.4) and left deeper
 #: overlaps (3.9% and 4.5% of R at 8 s against 1.9%).
 GRID_PASS_STOP = 0.1
-
-_HASH = np.array([73856093, 19349663, 83492791], np.uint32)
-
-
-def _cell_hash(c, table):
-    """Bucket of integer cell coordinates c [dim, ...] in a table of `table` (a power of two) buckets."""
-    h = jnp.zeros(c.shape[1:], jnp.uint32)
-    for a in range(c.shape[0]):
-        h = h ^ (c[a].astype(jnp.uint32) * jnp.uint32(_HASH[a]))
-    return (h & jnp.uint32(table - 1)).astype(jnp.int32)
-
-
-def neighbours(cs: ContactSystem, x, v, h):
-    """Candidate pairs of a grid model at positions x and velocities v [dim, *view] for a step of length h:
-    (partners [n, K] int32, internal indices, -1 for empty slots; overflow, int32 scalar).
-
-    The particles are hashed into cells of side 2 (1 + GRID_SKIN) max(r) + 2 h max|v - mean(v)| (so every
-    candidate of a particle lies in its own cell or one of the 3^dim - 1 around it), sorted by bucket, and each
-    particle scans up to GRID_SCAN * K entries of each of those cells' buckets (`_scan`). A scanned j is kept
-    if it is in that cell, j's user index is above i's (each pair once), they are not a skipped pair
-    (`core.contact.joined_at_rest`: one rod, rope or constraint row, or touching at build within one piece), and
-    |x_j - x_i| is below the candidate distance (1 + GRID_SKIN)(r_i + r_j) + h |v_j - v_i|; the first K are
-    kept (`_select`). The overflow counts the candidates that found no slot plus the bucket entries beyond
-    those scanned (those may or may not have been candidates: it is an upper bound, and 0 means no candidate
-    was missed). No gradient flows through the search (it only picks indices). `grid_search` also returns
-    the scan, and `common.grid_step` checks that the pairs of a step's actual paths were found."""
-    return grid_search(cs, x, v, h)[0]
-
-
-def _spread(vf):
-    """max |v - mean(v)| of velocities vf [dim, n]: |v_j - v_i| <= 2 spread (relative to the mean velocity, a
-    pile falling as one keeps small cells)."""
-    d = vf - jnp.mean(vf, axis=1, keepdims=True)
-    return jnp.sqrt(jnp.max(_dot(d, d)))
-
-
-def grid_search(cs: ContactSystem, x, v, h):
-    """`neighbours`, and its scan (`_scan`'s scanned entries j [n, M], bucket entries left unscanned [n], and
-    the cell side), which `path_search` can pick from again."""
-    dim = x.shape[0]
-    xf = lax.stop_gradient(x.reshape(dim, -1))
-    vf = lax.stop_gradient(v.reshape(dim, -1))
-    r = lax.stop_gradient(cs.radius_flat)
-    reach = 2 * (1 + GRID_SKIN) * jnp.max(r) + 2 * h * _spread(vf)
-    scan = _scan(cs.ct, xf, reach)
-
-    def close(jc):              # within the candidate distance (1 + GRID_SKIN)(r_i + r_j) + h |v_j - v_i|
-        d, dv = xf[:, jc] - xf[:, :, None], vf[:, jc] - vf[:, :, None]
-        cut = (1 + GRID_SKIN) * (r[:, None] + r[jc]) + h * jnp.sqrt(_dot(dv, dv))
-        return jnp.sqrt(_dot(d, d)) < cut
-
-    return _select(cs, scan, close), scan
-
-
-def _scan(ct: ContactTopology, xf, reach):
-    """Hash particles xf [dim, n] into cells of side `reach` and list, per particle, up to GRID_SCAN * K
-    entries of its own and each surrounding cell's bucket: (j [n, 3^dim GRID_SCAN K], -1 where none, the
-    bucket entries beyond those scanned [n], reach)."""
-    K, table = ct.grid_k, ct.grid_table
-    scan = GRID_SCAN * K
-    dim, n = xf.shape
-    cell = jnp.maximum(reach, jnp.finfo(xf.dtype).tiny) * (1 + 1e-6)
-    big = 2 ** 28                                                  # cell coordinates stay far from int32's end
-    c = jnp.clip(jnp.floor(xf / cell), -big, big).astype(jnp.int32)
-    key = _cell_hash(c, table)
-    order = jnp.argsort(key)
-    count = jnp.zeros((table,), jnp.int32).at[key].add(1)
-    start = jnp.cumsum(count) - count                 # each bucket's first position in the sorted order
-    # one offset at a time: gathering every surrounding cell at once ([3^dim, n, scan]) cut a grid gradient's
-    # program by a fifth but ran the search 1.4x (1024 discs) to 2x (4096) slower, measured 2026-11-25
-    cands, missed = [], jnp.zeros((n,), jnp.int32)
-    for off in itertools.product((-1, 0, 1), repeat=dim):
-        qc = c + jnp.asarray(off, jnp.int32)[:, None]
-        qk = _cell_hash(qc, table)
-        lo = start[qk]
-        hi = lo + count[qk]
-        idx = lo[:, None] + jnp.arange(scan)[None]                   # [n, scan] positions in the sorted order
-        j = order[jnp.minimum(idx, n - 1)]
-        ok = (idx < hi[:, None]) & jnp.all(c[:, j] == qc[:, :, None], axis=0)
-        cands.append(jnp.where(ok, j, -1))
-        missed = missed + jnp.maximum(hi - lo - scan, 0).astype(jnp.int32)
-    return jnp.concatenate(cands, 1), missed, reach
-
-
-def _select(cs: ContactSystem, scan, close):
-    """The first K scanned entries (`_scan`) j of each particle i with a higher user index, not skipped
-    (`joined_at_rest`), and `close(jc)` [n, M] (jc the entries, -1 as 0): (partners [n, K], overflow: the entries
-    kept beyond K plus the bucket entries left unscanned)."""
-    ct = cs.ct
-    K, (j, missed, _) = ct.grid_k, scan
-    n = j.shape[0]
-    uid = jnp.asarray(ct.grid_uid.array)
-    excl = jnp.asarray(ct.grid_exclude.array)
-    jc = jnp.maximum(j, 0)
-    keep = (j >= 0) & (uid[jc] > uid[:, None]) & close(jc)
-    keep = keep & ~jnp.any(jc[:, :, None] == excl[:, None, :], axis=-1)
-    rank = jnp.cumsum(keep, axis=1) - 1
-    count = jnp.sum(keep, axis=1)
-    slot = jnp.where(keep & (rank < K), rank, K)
-    out = jnp.full((n, K + 1), -1, jnp.int32).at[jnp.arange(n)[:, None], slot].set(j.astype(jnp.int32))
-    overflow = jnp.sum(jnp.maximum(count - K, 0) + missed).astype(jnp.int32)
-    return out[:, :K], overflow
-
-
-def path_search(cs: ContactSystem, x, x_end, h, scan, margin=None):
-    """The pairs that touch on the way from x to x_end [dim, *view] (each particle on the straight line between
-    them: the nearest the pair comes is below r_i + r_j, less rounding; with `margin` [n], a per-particle
-    widening, below r_i + r_j + margin_i + margin_j), as `neighbours` lists them (partners [n, K], overflow).
-    The earlier search's `scan` is used again where its cells are wide enough for these displacements, else the
-    particles are scanned again (`lax.cond`)."""
-    dim = x.shape[0]
-    xf, xe = (lax.stop_gradient(a.reshape(dim, -1)) for a in (x, x_end))
-    r = lax.stop_gradient(cs.radius_flat)
-    if margin is not None:
-        r = r + lax.stop_gradient(margin)
-    reach = 2 * (1 + GRID_SKIN) * jnp.max(r) + 2 * _spread(xe - xf)
-    scan = lax.cond(reach <= scan[2], lambda _: scan, lambda _: _scan(cs.ct, xf, reach), None)
-
-    def close(jc):
-        d0 = xf[:, jc] - xf[:, :, None]
-        e = (xe[:, jc] - xe[:, :, None]) - d0
-        s = jnp.clip(-_dot(d0, e) * L.safe_reciprocal(_dot(e, e)), 0, 1)
-        closest = jnp.sqrt(_dot(d0 + s * e, d0 + s * e))
-        R = r[:, None] + r[jc]
-        return closest < R - _tolerance(_magnitude(xf[:, jc]) + _magnitude(xf)[:, None] + R)
-
-    return _select(cs, scan, close)
-
-
-def merge_partners(a, b):
-    """The partners [n, K] of `a` followed by those of `b` that `a` lacks, the first K of each row (a pair
-    sits in the row of its lower-numbered particle in both): (partners, how many did not fit, int32)."""
-    n, K = a.shape
-    both = jnp.concatenate([a, jnp.where(jnp.any(b[:, :, None] == a[:, None, :], -1), -1, b)], 1)
-    keep = both >= 0
-    rank = jnp.cumsum(keep, axis=1) - 1
-    slot = jnp.where(keep & (rank < K), rank, K)
-    out = jnp.full((n, K + 1), -1, jnp.int32).at[jnp.arange(n)[:, None], slot].set(both)
-    return out[:, :K], jnp.sum(jnp.maximum(jnp.sum(keep, 1) - K, 0)).astype(jnp.int32)
-
-
-def unsolved(touching, solved):
-    """How many pairs of `touching` [n, K] (`path_search`) are not in `solved` [n, K]: int32 scalar (a pair sits
-    in the row of its lower-numbered particle in both)."""
-    new = (touching >= 0) & ~jnp.any(touching[:, :, None] == solved[:, None, :], -1)
-    return jnp.sum(new).astype(jnp.int32)
-
-
-def pair_slots(ct: ContactTopology, n: int, partners=None):
-    """The pair contacts' particles: (ia, ja, valid, index). Listed pairs: the static rounds (ct.i, ct.j
-    [R, S]), their `valid` mask, index None. A grid model's `partners` [n, K]: ia each slot's particle, ja its
-    partner (0 for an empty slot), valid the slots in use, index the flat (ia, ja) (`pair_index`)."""
-    if partners is None:
-        return ct.i.array, ct.j.array, ct.valid.array, None
-    ia = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32)[:, None], partners.shape)
-    ja = jnp.maximum(partners, 0)
-    return ia, ja, partners >= 0, (ia.reshape(-1), ja.reshape(-1))
-
-
-def pair_index(ct: ContactTopology, pairs: Rows):
-    """The pair rows' particles, flat: (i, j) [P] internal indices (grid rows: empty slots point at 0 and have
-    k = 0)."""
-    if pairs is not None and pairs.i is not None:
-        return pairs.i.reshape(-1), jnp.maximum(pairs.j, 0).reshape(-1)
-    return ct.i.array.reshape(-1), ct.j.array.reshape(-1)
-
-
-# ---- rows ------------------------------------------------------------------------------------------------------
-#: Gaps within ROUNDING * eps * (the size of the coordinates they come from) of 0 count as touching (`_gap`).
-ROUNDING = 64
-
-#: The fastest a touching contact's Baumgarte term pushes an overlap out (m/s), Box2D's
-#: `contactPushMaxVelocity` (b2_contactPushMaxVelocity, 3 m/s). Without it a particle that starts deep inside
-#: an obstacle leaves at beta C / h: 0.2 * 0.8 m at h = 1/240 s is 38 m/s, and the position pass then removes
-#: the overlap, so nothing takes that velocity back (a particle started 0.3 R off a 1 m sphere's centre
-#: reached z = 58 m after 2 s with PGS(10, substeps=4)).
-PUSH_OUT_SPEED = 3.0
-
-#: PGS's default contact slop (`PGS.contact_slop`), a fraction of the contact distance (r_i + r_j for a pair, r
-#: for an obstacle): Box2D's linear slop (b2_linearSlop, 5 mm for bodies of about a metre). Overlaps up to the
-#: slop are left to the contact: the Baumgarte term pushes out only the overlap beyond `PUSH_SLOPS` of it, the
-#: position safety pass projects onto it (not onto C = 0), and a pair whose gap is within it either way is
-#: warm-started. Without
-#: it a pile never rests (docs/contacts.md, piles at rest): the position pass left resting contacts at C = 0,
-#: within rounding of touching, so that the next step took 40% of the disc box's pushing pairs as separated and
-#: solved them cold (no warm start, hence no friction either), while the Baumgarte term pushed every overlap
-#: out at velocity level that the position pass removed as well.
-CONTACT_SLOP = 0.005
-
-#: The Baumgarte term of a touching contact pushes out only the overlap beyond PUSH_SLOPS slops, while the position
-#: pass projects onto one slop: the position pass removes overlap without making velocity, and what it leaves
-#: (within its stopping tolerance, `GRID_PASS_STOP`, or in a column too tall for its passes) is turned into
-#: velocity only beyond PUSH_SLOPS. Both removing the same overlap kept piles moving (docs/contacts.md, piles at
-#: rest): beyond one slop the 1024-disc box moved at 1.1 m/s; beyond two the 4096-disc box still flowed at 2.3 m/s
-#: after 8 s, 97% of its discs faster than 0.05 m/s; beyond six it comes to rest (0.03 m/s at 8 s with 2 substeps).
-PUSH_SLOPS = 6.0
-
-
-def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h, slop=0.0):
-    """Target velocity of contacts with gap C (`_gap`: > 0 separated, <= 0 touching), normal velocity vn0 at
-    the start of the step and vn1 after the external forces, and an impact at `toi` where `impact` (module
-    docstring; a contact within rounding of touching, C = 0, may be an impact at toi ~ 0).
-
-    Within an impact step the approach velocity is taken to change linearly, vn0 + (vn1 - vn0) t / h, so the
-    impact speed u depends on the time of impact, and the forces keep acting for the rest of the step after the
-    bounce: target = max(e u + (vn1 - vn0) (h - toi) / h, 0). This keeps the map from one state to the next
-    continuous where the impact moves from one step to the next (at toi = h and toi = 0 both sides give the
-    same state), and gives the time-of-impact dependence of u its right derivative (du/dC = a / |vn1|).
-    A separated contact that is not an impact gets the speculative target -C_spec / h, C_spec its gap along
-    the row's normal. A touching one pushes its overlap beyond `slop` (m) out at -beta (C + slop) / h, at most
-    `PUSH_OUT_SPEED`.
-    Returns (target, target without restitution)."""
-    dv = vn1 - vn0
-    u = -(vn0 + dv * toi / h)
-    bounce = jnp.where(u > cs.threshold, cs.restitution * u, 0)
-    rest = dv * (h - toi) / h
-    push = jnp.minimum(-beta * jnp.minimum(C + slop, 0) / h, PUSH_OUT_SPEED)
-
-    def target(after):
-        return jnp.where(impact, after, jnp.where(C > 0, -C_spec / h, jnp.maximum(after, push)))
-
-    return target(jnp.maximum(bounce + rest, 0)), target(jnp.maximum(rest, 0))
-
-
-def _tolerance(scale):
-    """Rounding tolerance of a gap computed from numbers of size `scale`: `ROUNDING` eps scale (`_gap`)."""
-    return ROUNDING * jnp.finfo(scale.dtype).eps * scale
-
-
-def _gap(C, tol):
-    """The gap a row uses: C + tol (`_tolerance`), so that a contact touches (gap <= 0) only once it overlaps
-    by more than rounding.
-
-    The position pass leaves the contacts it corrects at C = 0 up to rounding, so that the next step's C is
-    +-1e-17 (float64). Whether such a contact is separated or touching (warm-started, its Baumgarte term
-    active), and whether an approaching one is an impact at toi = C / |vn| (whose derivative, 1 / |vn|, the
-    touching branch does not have) would be decided by the rounding of the program that computes it, and the
-    forward-mode and reverse-mode programs round differently: the drape's jax.grad was 2% off jax.jacfwd.
-    Within the tolerance a contact is separated whatever the sign of its rounding: speculative, or an impact
-    at toi ~ tol / |vn| if it approaches (`_swept`)."""
-    return C + tol
-
-
-def _swept(d, u, R, h, tol):
-    """Contact of two spheres (or a sphere and a point) whose centres are `d` apart ([dim, ...], from the first
-    to the second) and move apart at the constant relative velocity `u` over the step, touching at distance R.
-
-    Returns (n, C, C_n, hit, impact, toi): C = |d| - R; `hit` where the straight-line paths come within R - tol
-    inside the step (`_gap`'s tolerance: a contact left at C = 0 +- rounding by the position pass that
-    approaches is an impact at toi ~ tol / speed, whatever the sign of its rounding), at time toi (the smaller
-    root of |d + t u| = R - tol, in a cancellation-free form); n the unit normal at the time of impact where
-    `hit`, else at the start (`direction`: the last axis where d = 0), and C_n = n . d - R the gap along it.
-    `impact` starts equal to `hit` (`_first_impacts` may clear it). Using the normal at impact, not a
-    linearised gap along the start normal, is what catches glancing impacts of balls that move several
-    diameters per step."""
-    dist, n0 = direction(d)
-    C = dist - R
-    Ci, Ri = _gap(C, tol), R - tol
-    uu = _dot(u, u)
-    du = _dot(d, u)
-    disc = du * du - uu * (Ci * (dist + Ri))
-    hit = (Ci > 0) & (du < 0) & (disc > 0)
-    root = jnp.sqrt(jnp.where(hit, disc, 1))
-    t = Ci * (dist + Ri) / jnp.where(hit, root - du, 1)
-    hit = hit & (t < h)
-    toi = jnp.where(hit, t, 0)
-    _, n_hit = _norm(d + toi * u)
-    n = jnp.where(hit, n_hit, n0)
-    return n, C, _dot(n, d) - R, hit, hit, toi
-
-
-def _magnitude(a):
-    """Sum of |a| over the leading (dim) axis: the size of the coordinates a gap is computed from."""
-    return jnp.sum(jnp.abs(a), 0)
-
-
-def _obstacle_geometry(cs: ContactSystem, x, v, h):
-    """(n [Q, dim, *view], C, C_n, hit, impact, toi, tol [Q, *view]) of every particle against every plane,
-    then every sphere, for particles moving at `v` over the step; tol is `_gap`'s rounding tolerance."""
-    ct, dim, nview = cs.ct, x.shape[0], x.ndim - 1
-    out = []
-    r = cs.radius[0]
-    size = _magnitude(x) + r
-    for p in range(ct.n_planes):
-        nrm = jnp.broadcast_to(cs.plane_normal[p].reshape((dim,) + (1,) * nview), x.shape)
-        C = jnp.sum(nrm * x, 0) - cs.plane_offset[p] - r
-        tol = _tolerance(size + jnp.abs(cs.plane_offset[p]))
-        vn = jnp.sum(nrm * v, 0)
-        Ci = _gap(C, tol)                  # as in `_swept`: the impact is when the gap reaches -tol
-        impact = (Ci > 0) & (Ci + h * vn < 0)
-        out.append((nrm, C, C, impact, impact, jnp.where(impact, Ci / jnp.where(impact, -vn, 1), 0), tol))
-    for s in range(ct.n_spheres):
-        c = cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
-        R = cs.sphere_radius[s] + r
-        tol = _tolerance(size + _magnitude(c) + R)
-        out.append(_swept(x - c, v, R, h, tol) + (tol,))
-    return tuple(jnp.stack(a) for a in zip(*out))
-
-
-def _first_impacts(ct, obs, pairs, n_particles, index=None):
-    """Keep an impact only if it is the first, within the step, of each particle it involves: a ball that hits
-    another cannot also hit, on its unobstructed path, the ball behind it or the cushion beyond. The later
-    ones stay speculative contacts along their normal at impact (no bounce, no time of impact). `obs`/`pairs`:
-    (n, C, C_n, hit, impact, toi, tol) or None. Returns them with `impact` updated. An impact of a contact that
-    already touches (C <= tol, `_swept`) is a touching contact, given its time of impact only for its
-    derivative: it is always kept, and it hides no other impact."""
-    inf = jnp.inf
-
-    def real(g):
-        return g[3] & (g[1] > g[6])
-
-    ref = (obs if obs is not None else pairs)[5]
-    first = jnp.full((n_particles,), inf, ref.dtype)
-    if obs is not None:
-        first = jnp.min(jnp.where(real(obs), obs[5], inf).reshape(obs[5].shape[0], -1), axis=0)
-    if pairs is not None:
-        ia, ja = (ct.i.array.reshape(-1), ct.j.array.reshape(-1)) if index is None else index
-        t = jnp.where(real(pairs), pairs[5], inf).reshape(-1)
-        first = first.at[ia].min(t).at[ja].min(t)
-        keep = ((t <= first[ia]) & (t <= first[ja])).reshape(pairs[3].shape)
-        pairs = pairs[:4] + (pairs[3] & (keep | ~real(pairs)),) + pairs[5:]
-    if obs is not None:
-        keep = obs[5] <= first.reshape((1,) + obs[5].shape[1:])
-        obs = obs[:4] + (obs[3] & (keep | ~real(obs)),) + obs[5:]
-    return obs, pairs
-
-
-def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None, slop=0.0):
-    """Contact rows at the start of a (sub)step: (obstacle Rows or None, pair Rows or None). `v0` is the
-    velocity at the start of the step, `v` after the external forces and before any impulse. A grid model
-    passes its `partners` [n, K] (from `neighbours`). `slop`: the solver's contact slop, a fraction of the
-    contact distance (`CONTACT_SLOP`; 0: none)."""
-    ct, dim = cs.ct, x.shape[0]
-    xf, vf, v0f, wf = x.reshape(dim, -1), v.reshape(dim, -1), v0.reshape(dim, -1), w.reshape(-1)
-    obs = _obstacle_geometry(cs, x, v, h) if ct.n_obstacles else None
-    pairs, index = None, None
-    if ct.n_pairs or ct.has_grid:
-        ia, ja, valid, index = pair_slots(ct, xf.shape[1], partners)
-        xi, xj, R = xf[:, ia], xf[:, ja], cs.radius_flat[ia] + cs.radius_flat[ja]
-        tol = _tolerance(_magnitude(xi) + _magnitude(xj) + R)
-        pairs = _swept(xj - xi, vf[:, ja] - vf[:, ia], R, h, tol)
-        live = jnp.asarray(valid)          # a padding or empty slot is no impact (it would hide a real one)
-        pairs = pairs[:3] + (pairs[3] & live, pairs[4] & live, pairs[5], tol)
-    obs, pairs = _first_impacts(ct, obs, pairs, xf.shape[1], index)
-
-    def finish(geometry, vn0, vn1, winv, k, distance, window):
-        n, C, C_n, _, impact, toi, tol = geometry
-        toi = jnp.where(impact, toi, 0)
-        gap = _gap(C, tol)
-        s = slop * distance
-        target, target_c = _targets(gap, C_n, vn0, vn1, impact, toi, cs, beta, h, PUSH_SLOPS * s)
-        # Warm-started: touching, impacts, and pairs within the slop of touching either way (a disc of a pile that
-        # lifts off its neighbour by less than the slop keeps the impulse it leant on it with; measured in
-        # docs/contacts.md). Obstacles keep gap <= 0: warm-starting those within the slop as well brought the pile
-        # to rest sooner (0.003 against 0.018 m/s at 8 s) but the float32 drape's gradients 1.9% off float64.
-        warm = impact | (gap <= (s if window else 0))
-        return Rows(n, target, k, winv, toi, gap, target_c, near=C <= tol, warm=warm)
-
-    if obs is not None:
-        n = obs[0]
-        winv = jnp.broadcast_to(w[0], obs[1].shape)
-        obs = finish(obs, jnp.sum(n * v0[None], 1), jnp.sum(n * v[None], 1), winv, L.safe_reciprocal(winv),
-                     cs.radius, False)
-    if pairs is not None:
-        n = pairs[0]
-        winv = wf[ia] + wf[ja]
-        k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype)
-        vn0, vn1 = (_dot(n, a[:, ja] - a[:, ia]) for a in (v0f, vf))
-        pairs = finish(pairs, vn0, vn1, winv, k, cs.radius_flat[ia] + cs.radius_flat[ja], True)
-        if index is not None:
-            pairs = pairs._replace(i=ia, j=partners)
-    return obs, pairs
 
 
 def _solve_row(vrel, f: Rows, mu, ln, lt, soft=None):
@@ -744,7 +270,7 @@ def jacobi_pass(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, imp: Impulses, 
             k = L.safe_reciprocal(cf[ia] * wf[ia] + cf[ja] * wf[ja]).reshape(shape) * (pairs.k > 0).astype(v.dtype)
         vrel = (vf[:, ja] - vf[:, ia]).reshape(pairs.n.shape)
         P, pn, pt = _solve_row(vrel, pairs._replace(k=k), mu, pn, pt)
-        dv = dv + _pair_total(ct, w, P, -1.0, index).reshape(v.shape)
+        dv = dv + pair_total(ct, w, P, -1.0, index).reshape(v.shape)
     return dv, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
 
@@ -783,23 +309,8 @@ def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, 
     if pairs is not None:
         pn, pt = project(pairs, pn, pt)
         P = pairs.n * pn + pt
-        v = v + _pair_total(ct, w, P, -1.0, pair_index(ct, pairs)).reshape(v.shape)
+        v = v + pair_total(ct, w, P, -1.0, pair_index(ct, pairs)).reshape(v.shape)
     return v, prev._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
-
-
-# ---- restitution that never creates energy ---------------------------------------------------------------------
-def compression(f: Optional[Rows]) -> Optional[Rows]:
-    """The rows of the compression phase: every target without its restitution part."""
-    return None if f is None else f._replace(target=f.target_c)
-
-
-def bouncing(obs: Optional[Rows], pairs: Optional[Rows]):
-    """Whether any row asks for a bounce (its target is above its compression target)."""
-    out = jnp.zeros((), bool)
-    for f in (obs, pairs):
-        if f is not None:
-            out = out | jnp.any(f.target > f.target_c)
-    return out
 
 
 def restitution_scale(w, v_free, v_c, v_n, bounce):
@@ -832,17 +343,6 @@ def restitution_scale(w, v_free, v_c, v_n, bounce):
     s = jnp.where(b >= 0, slack / jnp.where(den > 0, den, 1),
                   (root - b) / jnp.where(b < 0, jnp.maximum(c, root - b), 1))
     return jnp.where(within, 1, jnp.clip(s, 0, 1))
-
-
-def _pair_total(ct, w, P, sign_i, index=None):  # noqa: D401
-    """Sum over every pair slot of +w_j P on j and sign_i * w_i P on i: [dim, n] (a scatter-add). `index`:
-    the slots' flat (i, j) (`pair_index`; default the static rounds')."""
-    dim = P.shape[0]
-    wf = w.reshape(-1)
-    ia, ja = (ct.i.array.reshape(-1), ct.j.array.reshape(-1)) if index is None else index
-    Pf = P.reshape(dim, -1)
-    out = jnp.zeros((dim, wf.shape[0]), P.dtype)
-    return out.at[:, ja].add(wf[ja] * Pf).at[:, ia].add(sign_i * wf[ia] * Pf)
 
 
 #: Passes that carry a time of impact across touching contacts (a ball hit in a rack passes the impulse on
@@ -999,31 +499,6 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
 # The substep's reported impulses (N s) are the velocity pass's totals: lam / h plus the velocity rows.
 
 
-def obstacle_gap(cs: ContactSystem, q: int, p, x=None):
-    """(unit normal [dim, *view], gap [*view]) of every particle at `p` against obstacle q (planes first).
-    With the substep's start positions `x`, a particle that started inside a sphere keeps the normal it had
-    there (`overlap_normal`)."""
-    dim, nview = p.shape[0], p.ndim - 1
-    r = cs.radius[0]
-    if q < cs.ct.n_planes:
-        nrm = jnp.broadcast_to(cs.plane_normal[q].reshape((dim,) + (1,) * nview), p.shape)
-        return nrm, jnp.sum(nrm * p, 0) - cs.plane_offset[q] - r
-    s = q - cs.ct.n_planes
-    c = cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
-    if x is not None:
-        return overlap_normal(x - c, p - c, cs.sphere_radius[s] + r)
-    dist, nrm = direction(p - c)
-    return nrm, dist - cs.sphere_radius[s] - r
-
-
-def _pair_gap(cs: ContactSystem, pf, r, xf):
-    """(unit normal [dim, S] from i to j, gap [S]) of pair round r at flat positions pf [dim, n], the substep
-    having started at xf (`overlap_normal`)."""
-    ct = cs.ct
-    i, j = jnp.asarray(ct.i.array)[r], jnp.asarray(ct.j.array)[r]
-    return overlap_normal(xf[:, j] - xf[:, i], pf[:, j] - pf[:, i], cs.radius_flat[i] + cs.radius_flat[j])
-
-
 def _position_row(disp, n, C, k, mu, ln, lt):
     """One contact at position level: normal multiplier (accumulated, >= 0), then static friction. `disp` is
     the second body's displacement over the substep relative to the first, k = 1 / (w_i + w_j) (0: no row).
@@ -1064,7 +539,7 @@ def position_pass(cs: ContactSystem, w, x, p, imp: Impulses, partners=None):
         def one_round(r, carry):
             pf, pn, pt = carry
             i, j = ia[r], ja[r]
-            n, C = _pair_gap(cs, pf, r, xf)
+            n, C = pair_gap(cs, pf, r, xf)
             disp = (pf[:, j] - xf[:, j]) - (pf[:, i] - xf[:, i])
             k = L.safe_reciprocal(wf[i] + wf[j]) * valid[r]
             P, ln, lt = _position_row(disp, n, C, k, mu, pn[r], pt[:, r])
@@ -1105,39 +580,6 @@ def _grid_project(cs: ContactSystem, w, x, p, partners, pn, pt):
     xs = (slot_major(partners), slot_major(pn), slot_major(pt))
     pf, (pn, pt) = lax.scan(one_slot, p.reshape(dim, -1), xs)
     return pf.reshape(shape), jnp.moveaxis(pn, 0, -1), jnp.moveaxis(pt, 0, -1)
-
-
-def _bounce_target(cs: ContactSystem, vn_before):
-    """Restitution target of the velocity pass: max(-e vn_before, 0), e = 0 at or below the threshold."""
-    e = jnp.where(jnp.abs(vn_before) > cs.threshold, cs.restitution, 0)
-    return jnp.maximum(-e * vn_before, 0)
-
-
-def velocity_rows(cs: ContactSystem, w, p, v_before, imp: Impulses, partners=None):
-    """Velocity rows (obstacle Rows or None, pair Rows or None) at the end of the position solve: normals and
-    gaps at `p`, restitution targets from `v_before` (start of the substep, after gravity), and effective
-    masses only for contacts that pushed in this substep (lam_n > 0; the others get k = 0, no impulse). A grid
-    model's pair rows are its `partners`' slots [n, K]."""
-    ct, dim = cs.ct, p.shape[0]
-    obs = pairs = None
-    if ct.n_obstacles:
-        ns, Cs = zip(*(obstacle_gap(cs, q, p) for q in range(ct.n_obstacles)))
-        n, C = jnp.stack(ns), jnp.stack(Cs)
-        winv = jnp.broadcast_to(w[0], C.shape)
-        k = L.safe_reciprocal(winv) * (imp.obs_n > 0).astype(C.dtype)
-        obs = Rows(n, _bounce_target(cs, jnp.sum(n * v_before[None], 1)), k, winv, jnp.zeros_like(C), C)
-    if ct.n_pairs or ct.has_grid:
-        pf, vf, wf = p.reshape(dim, -1), v_before.reshape(dim, -1), w.reshape(-1)
-        ia, ja, valid, _ = pair_slots(ct, pf.shape[1], partners)
-        dist, n = direction(pf[:, ja] - pf[:, ia])
-        C = dist - cs.radius_flat[ia] - cs.radius_flat[ja]
-        winv = wf[ia] + wf[ja]
-        k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype) * (imp.pair_n > 0).astype(C.dtype)
-        vn = jnp.sum(n * (vf[:, ja] - vf[:, ia]), 0)
-        pairs = Rows(n, _bounce_target(cs, vn), k, winv, jnp.zeros_like(C), C)
-        if partners is not None:
-            pairs = pairs._replace(i=ia, j=partners)
-    return obs, pairs
 
 
 def position_velocity_pass(cs: ContactSystem, w, p, v_before, v, imp: Impulses, h, partners=None):

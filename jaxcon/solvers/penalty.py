@@ -9,9 +9,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from jaxcon.core import contact_rows
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
+from jaxcon.core.contact import Impulses, zero_impulses
 from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact
@@ -334,7 +336,7 @@ def _excess(C, vn, m, prev_n, h, k, c, two_zeta, tol):
 
 def _start_overlaps(cs, w, x, v, prev, h, k, c, partners=None):
     """Positions x [dim, *view] with every start overlap moved out at position level, along its contact's
-    normal (`contact.direction`: upwards from a sphere's exact centre or between coincident particles), with no
+    normal (`contact_rows.direction`: upwards from a sphere's exact centre or between coincident particles), with no
     change of velocity. A start overlap is an overlap that no spring can have stored: the contact did not push
     in the previous substep (the impulses `prev`), yet it is deeper than one substep's approach (`_excess`): a
     particle that starts inside an obstacle or another particle. Its spring would store (k / 2) depth^2 and fling
@@ -348,19 +350,19 @@ def _start_overlaps(cs, w, x, v, prev, h, k, c, partners=None):
         m = L.safe_reciprocal(w[0])
         size = jnp.sum(jnp.abs(x), 0) + r
         for q in range(ct.n_obstacles):
-            n, C = contact.obstacle_gap(cs, q, x)
-            tol = contact._tolerance(size + jnp.sum(jnp.abs(cs.plane_normal[q] if q < ct.n_planes else
+            n, C = contact_rows.obstacle_gap(cs, q, x)
+            tol = contact_rows.tolerance(size + jnp.sum(jnp.abs(cs.plane_normal[q] if q < ct.n_planes else
                                                               cs.sphere_centre[q - ct.n_planes])))
             x = x + n * _excess(C, jnp.sum(n * v, 0), m, prev.obs_n[q], h, k, c, two_zeta, tol)
     if ct.n_pairs or ct.has_grid:
         xf, vf, wf, rf = x.reshape(dim, -1), v.reshape(dim, -1), w.reshape(-1), cs.radius_flat
-        ia, ja, valid, index = contact.pair_slots(ct, xf.shape[1], partners)
-        dist, n = contact.direction(xf[:, ja] - xf[:, ia])
+        ia, ja, valid, index = contact_rows.pair_slots(ct, xf.shape[1], partners)
+        dist, n = contact_rows.direction(xf[:, ja] - xf[:, ia])
         m = L.safe_reciprocal(wf[ia] + wf[ja]) * jnp.asarray(valid, x.dtype)
-        tol = contact._tolerance(jnp.sum(jnp.abs(xf[:, ia]) + jnp.abs(xf[:, ja]), 0) + rf[ia] + rf[ja])
+        tol = contact_rows.tolerance(jnp.sum(jnp.abs(xf[:, ia]) + jnp.abs(xf[:, ja]), 0) + rf[ia] + rf[ja])
         vn = jnp.sum(n * (vf[:, ja] - vf[:, ia]), 0)
         e = _excess(dist - rf[ia] - rf[ja], vn, m, prev.pair_n, h, k, c, two_zeta, tol)
-        x = x + contact._pair_total(ct, w, n * (e * m), -1.0, index).reshape(x.shape)
+        x = x + contact_rows.pair_total(ct, w, n * (e * m), -1.0, index).reshape(x.shape)
     return x
 
 
@@ -376,19 +378,19 @@ def _contact_impulses(topo, cs, w, x, v0, v, h, k, c, slip, partners=None):
         m = L.safe_reciprocal(w[0])
         rows = []
         for q in range(ct.n_obstacles):
-            n, C = contact.obstacle_gap(cs, q, x)
+            n, C = contact_rows.obstacle_gap(cs, q, x)
             p_n, p_t = _penalty_row(v0, v, n, C, m, k, c, two_zeta, mu, slip, h)
             dv = dv + w * (n * p_n + p_t)
             rows.append((p_n, p_t))
         on, ot = (jnp.stack(a) for a in zip(*rows))
     if ct.n_pairs or ct.has_grid:
         xf, vf, v0f, wf = x.reshape(dim, -1), v.reshape(dim, -1), v0.reshape(dim, -1), w.reshape(-1)
-        ia, ja, valid, index = contact.pair_slots(ct, xf.shape[1], partners)
-        dist, n = contact.direction(xf[:, ja] - xf[:, ia])
+        ia, ja, valid, index = contact_rows.pair_slots(ct, xf.shape[1], partners)
+        dist, n = contact_rows.direction(xf[:, ja] - xf[:, ia])
         C = dist - cs.radius_flat[ia] - cs.radius_flat[ja]
         m = L.safe_reciprocal(wf[ia] + wf[ja]) * jnp.asarray(valid, x.dtype)
         pn, pt = _penalty_row(v0f[:, ja] - v0f[:, ia], vf[:, ja] - vf[:, ia], n, C, m, k, c, two_zeta, mu, slip, h)
-        dv = dv + contact._pair_total(ct, w, n * pn + pt, -1.0, index).reshape(v.shape)
-    zero = contact.zero_impulses(topo, ct, x.dtype)
-    return dv, contact.Impulses(zero.obs_n if on is None else on, zero.obs_t if ot is None else ot,
+        dv = dv + contact_rows.pair_total(ct, w, n * pn + pt, -1.0, index).reshape(v.shape)
+    zero = zero_impulses(topo, ct, x.dtype)
+    return dv, Impulses(zero.obs_n if on is None else on, zero.obs_t if ot is None else ot,
                                 zero.pair_n if pn is None else pn, zero.pair_t if pt is None else pt)

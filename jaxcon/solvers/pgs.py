@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from jaxcon.core import contact_rows
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
 from jaxcon.core.checks import check_bool, check_int, check_scalar
@@ -77,8 +78,8 @@ class PGS(Solver):
         differentiable leaf (default 0.005). Not used by Baumgarte.
       contact_slop: the overlap, as a fraction of the contact distance (r_i + r_j; r for a plane or sphere),
         that contacts keep without being pushed out (Box2D's linear slop), a differentiable leaf in [0, 0.5];
-        default `contact.CONTACT_SLOP` = 0.005, half a percent of a diameter. The Baumgarte term pushes out
-        only the overlap beyond six of it (`contact.PUSH_SLOPS`), the position safety pass projects onto it, and
+        default `contact_rows.CONTACT_SLOP` = 0.005, half a percent of a diameter. The Baumgarte term pushes out
+        only the overlap beyond six of it (`contact_rows.PUSH_SLOPS`), the position safety pass projects onto it, and
         pairs within it of touching are warm-started: what lets a pile come to rest (docs/contacts.md, piles at
         rest). 0 is the method before (resting contacts at C = 0, solved cold every other step).
       contact_passes: passes of the contacts' position safety pass per (sub)step (static, >= 1), or None for
@@ -103,7 +104,7 @@ class PGS(Solver):
     implicit: bool = static_field(default=False)
     stabilization: str = static_field(default="baumgarte")
     slop: Any = 0.005
-    contact_slop: Any = contact.CONTACT_SLOP
+    contact_slop: Any = contact_rows.CONTACT_SLOP
     contact_passes: Optional[int] = static_field(default=None)
 
     def __post_init__(self):

@@ -8,6 +8,7 @@ from typing import Any
 import jax.numpy as jnp
 from jax import lax
 
+from jaxcon.core import contact_rows
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
@@ -148,7 +149,7 @@ class SoftStep(Solver):
                   else jnp.asarray(self.contact_hertz, dtype))
             zeta = jnp.asarray(self.contact_damping_ratio, dtype)
             push = jnp.asarray(self.contact_push_velocity, dtype)
-            obs, pairs = contact.rows(cs, w, x, v0, v_free, jnp.zeros((), dtype), h,
+            obs, pairs = contact_rows.rows(cs, w, x, v0, v_free, jnp.zeros((), dtype), h,
                                       None if found is None else found[0])
             v, imp = contact.warm_start(cs, w, v, obs, pairs, imp)
             imp = with_found(imp, found)

@@ -6,8 +6,8 @@ from typing import Any
 import jax.numpy as jnp
 from jax import lax
 
-from jaxcon.core import layout as L
 from jaxcon.core.checks import check_int, check_scalar
+from jaxcon.core.contact import zero_impulses
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact
@@ -88,7 +88,7 @@ class XPBD(Solver):
                 return p, mu, imp
 
             zero = tuple(jnp.zeros(b.shape, dtype) for b in topo.blocks)
-            imp = None if cs is None else contact.zero_impulses(topo, cs.ct, dtype)
+            imp = None if cs is None else zero_impulses(topo, cs.ct, dtype)
             p, mu, imp = lax.fori_loop(0, self.iterations, sweep, (x + h * v_before, zero, imp))
             v = (p - x) / h
             if cs is not None:

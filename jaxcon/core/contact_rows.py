@@ -1,0 +1,433 @@
+"""The contact kind's rows (docs/contacts.md): planes, spheres and particle pairs made into unilateral rows
+with friction, a time of impact and restitution targets, at velocity level (`rows`) and at position level
+(`obstacle_gap`, `pair_gap`, `velocity_rows`). Solvers consume them (`jaxcon.solvers.contact`); the
+neighbour grid that lists a grid model's pairs is `jaxcon.core.grid`.
+
+Each contact has a unit normal n (from the obstacle, or from the pair's first particle, towards the particle
+that is pushed), a gap C (< 0: overlap) and an accumulated normal impulse lam_n >= 0 with a friction impulse
+lam_t in the tangent plane, |lam_t| <= mu lam_n. Per (sub)step of length h, with vn the approach velocity
+measured before the solve (after gravity):
+
+* Speculative contact (Box2D): a separated contact (C > 0) that does not close within the step only asks
+  vn' >= -C / h: it may close the gap, never more, so nothing tunnels.
+* Impact: a separated contact that would close within the step (C + h vn < 0) hits at time of impact
+  toi = C / -vn. Its target is the bounce velocity e u (0 when the impact speed u is below
+  `restitution_threshold`) plus what the external forces add after the impact (`_targets`), and after
+  the solve the positions are corrected as if the impulse had acted at toi instead of at the start of the
+  step: x += -toi * (velocity change from that contact's impulse) (DiffTaichi's time-of-impact correction).
+  This makes positions and their gradients those of an impact at the right time: an elastic ball dropped on
+  the ground has d y_T / d y_0 = -1 instead of +1.
+* Touching or overlapping (C <= 0): vn' >= max(bounce, -beta C / h) (Baumgarte push-out of the overlap).
+
+Friction is solved after each contact's normal row, as a 2-D or 3-D vector clamped to the Coulomb disc.
+
+Neighbour grid (a model built with ``collide="grid"``, or ``collide=True`` above 256 particles; one search per
+step, shared by its substeps, `common.grid_substepped`): the pairs are
+found at the start of every step by `neighbours` (a spatial hash of the positions) and kept in K slots per
+particle; their rows are those above, with `Rows.i`/`Rows.j` [n, K] naming the particles (j = -1: empty slot,
+k = 0). A PGS sweep solves them after the obstacles slot by slot, the rows of one slot together with mass
+splitting (`grid_pass`); the position safety pass projects them the same way, and the warm start matches last
+step's impulses by partner (a slot's impulse is carried over only if the same pair is listed again).
+`Impulses.partners` [n, K] and `Impulses.overflow` (the candidates that did not fit) travel with the impulses.
+The time-of-impact correction applies to grid pairs as to listed ones. After the solve, `common.grid_step`
+checks that no unlisted pair touched on the paths the solve gave (`path_search`, `unsolved`), solving the
+step again with those pairs if one did.
+
+Start overlaps (a particle inside an obstacle or another particle) are pushed out at no more than
+`PUSH_OUT_SPEED`, along `direction` (the last axis where the centres coincide). Gaps within rounding of 0
+(`_gap`) are classified the same way by every program that computes them, so that forward and reverse mode
+agree. `ContactSystem.from_model` makes every leaf NaN when one holds a value `Model` refuses.
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Optional
+
+import jax.numpy as jnp
+from jax import lax
+
+from jaxcon.core import layout as L
+from jaxcon.core.contact import ContactSystem, ContactTopology, Impulses
+
+Array = Any
+
+
+class Rows(NamedTuple):
+    """Contact rows of one (sub)step: normal n, target velocity `target`, effective mass k, inverse-mass sum
+    winv, time of impact `toi` (0 unless an impact happens within the step), gap, and `target_c`: the target
+    without restitution (the compression phase; None for solvers that do not split the solve). Grid pair rows
+    also carry their particles i, j [n, K] (internal indices, j = -1 for an empty slot); None otherwise. `near`:
+    touching or within rounding of it (an impact of such a contact is one of a touching contact, `_gap`).
+    `warm`: the rows the warm start applies last step's impulse to (touching, an impact, or a pair within the
+    solver's slop of touching)."""
+
+    n: Array
+    target: Array
+    k: Array
+    winv: Array
+    toi: Array
+    gap: Array
+    target_c: Array = None
+    i: Array = None
+    j: Array = None
+    near: Array = None
+    warm: Array = None
+
+
+def dot(a, b):
+    """Sum of a * b over the leading (dim) axis, written out component by component (`layout.dot0`). On XLA's
+    CPU backend `jnp.sum(a * b, 0)` of gathered operands ([dim, n, M] from x[:, j]) becomes a reduction kernel
+    that gathers again for every element: the grid search's distance test of the 1024-disc box took 6.5 ms
+    that way and 0.26 ms written out."""
+    return L.dot0(a, b)
+
+
+def length(d):
+    """`layout.safe_length` with `dot`: (length, 1 / length) along the leading axis, both 0 at zero length."""
+    d2 = dot(d, d)
+    ok = d2 > L.min_length2(d.dtype)
+    inv = jnp.where(ok, lax.rsqrt(jnp.where(ok, d2, 1)), 0)
+    return d2 * inv, inv
+
+
+def _norm(d):
+    """`layout.safe_norm` along the leading axis with `dot`: (length, unit direction, 0 at zero length)."""
+    dist, inv = length(d)
+    return dist, d * inv
+
+
+def direction(d):
+    """(length [...], unit direction [dim, ...]) of contact vectors d [dim, ...] (from the first body to the
+    second) as `layout.safe_norm`, except that where d is 0 (coincident centres: a particle started at a
+    sphere's centre, or on another particle) the direction is +e_last, the last axis (y in 2-D, z in 3-D: up
+    for the default gravity), so that the overlap is still pushed out: the second body upwards. Its derivative
+    there is 0."""
+    dist, n = _norm(d)
+    up = jnp.zeros((d.shape[0],) + (1,) * (d.ndim - 1), d.dtype).at[-1].set(1)
+    return dist, jnp.where(dist > 0, n, up)
+
+
+def overlap_normal(d0, d, R):
+    """(unit normal, gap) of contacts at distance vectors d [dim, ...] (touching at |d| = R) for a position
+    level solver (XPBD) whose contacts also had d0 at the start of the substep: the normal of d
+    (`direction`), except for a contact that already overlapped at the start (a particle started inside a
+    sphere or another particle), which keeps the start's normal and the gap along it, n0 . d - R, so that it
+    leaves by the nearest surface of where it was (upwards from the exact centre), not by the side that
+    gravity's prediction happened to move it towards."""
+    dist0, n0 = direction(d0)
+    dist, n = direction(d)
+    deep = dist0 - R < -tolerance(magnitude(d0) + R)
+    return jnp.where(deep, n0, n), jnp.where(deep, dot(n0, d), dist) - R
+
+
+def pair_slots(ct: ContactTopology, n: int, partners=None):
+    """The pair contacts' particles: (ia, ja, valid, index). Listed pairs: the static rounds (ct.i, ct.j
+    [R, S]), their `valid` mask, index None. A grid model's `partners` [n, K]: ia each slot's particle, ja its
+    partner (0 for an empty slot), valid the slots in use, index the flat (ia, ja) (`pair_index`)."""
+    if partners is None:
+        return ct.i.array, ct.j.array, ct.valid.array, None
+    ia = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32)[:, None], partners.shape)
+    ja = jnp.maximum(partners, 0)
+    return ia, ja, partners >= 0, (ia.reshape(-1), ja.reshape(-1))
+
+
+def pair_index(ct: ContactTopology, pairs: Rows):
+    """The pair rows' particles, flat: (i, j) [P] internal indices (grid rows: empty slots point at 0 and have
+    k = 0)."""
+    if pairs is not None and pairs.i is not None:
+        return pairs.i.reshape(-1), jnp.maximum(pairs.j, 0).reshape(-1)
+    return ct.i.array.reshape(-1), ct.j.array.reshape(-1)
+
+
+# ---- rows ------------------------------------------------------------------------------------------------------
+#: Gaps within ROUNDING * eps * (the size of the coordinates they come from) of 0 count as touching (`_gap`).
+ROUNDING = 64
+
+
+#: The fastest a touching contact's Baumgarte term pushes an overlap out (m/s), Box2D's
+#: `contactPushMaxVelocity` (b2_contactPushMaxVelocity, 3 m/s). Without it a particle that starts deep inside
+#: an obstacle leaves at beta C / h: 0.2 * 0.8 m at h = 1/240 s is 38 m/s, and the position pass then removes
+#: the overlap, so nothing takes that velocity back (a particle started 0.3 R off a 1 m sphere's centre
+#: reached z = 58 m after 2 s with PGS(10, substeps=4)).
+PUSH_OUT_SPEED = 3.0
+
+
+#: PGS's default contact slop (`PGS.contact_slop`), a fraction of the contact distance (r_i + r_j for a pair, r
+#: for an obstacle): Box2D's linear slop (b2_linearSlop, 5 mm for bodies of about a metre). Overlaps up to the
+#: slop are left to the contact: the Baumgarte term pushes out only the overlap beyond `PUSH_SLOPS` of it, the
+#: position safety pass projects onto it (not onto C = 0), and a pair whose gap is within it either way is
+#: warm-started. Without
+#: it a pile never rests (docs/contacts.md, piles at rest): the position pass left resting contacts at C = 0,
+#: within rounding of touching, so that the next step took 40% of the disc box's pushing pairs as separated and
+#: solved them cold (no warm start, hence no friction either), while the Baumgarte term pushed every overlap
+#: out at velocity level that the position pass removed as well.
+CONTACT_SLOP = 0.005
+
+
+#: The Baumgarte term of a touching contact pushes out only the overlap beyond PUSH_SLOPS slops, while the position
+#: pass projects onto one slop: the position pass removes overlap without making velocity, and what it leaves
+#: (within its stopping tolerance, `GRID_PASS_STOP`, or in a column too tall for its passes) is turned into
+#: velocity only beyond PUSH_SLOPS. Both removing the same overlap kept piles moving (docs/contacts.md, piles at
+#: rest): beyond one slop the 1024-disc box moved at 1.1 m/s; beyond two the 4096-disc box still flowed at 2.3 m/s
+#: after 8 s, 97% of its discs faster than 0.05 m/s; beyond six it comes to rest (0.03 m/s at 8 s with 2 substeps).
+PUSH_SLOPS = 6.0
+
+
+def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h, slop=0.0):
+    """Target velocity of contacts with gap C (`_gap`: > 0 separated, <= 0 touching), normal velocity vn0 at
+    the start of the step and vn1 after the external forces, and an impact at `toi` where `impact` (module
+    docstring; a contact within rounding of touching, C = 0, may be an impact at toi ~ 0).
+
+    Within an impact step the approach velocity is taken to change linearly, vn0 + (vn1 - vn0) t / h, so the
+    impact speed u depends on the time of impact, and the forces keep acting for the rest of the step after the
+    bounce: target = max(e u + (vn1 - vn0) (h - toi) / h, 0). This keeps the map from one state to the next
+    continuous where the impact moves from one step to the next (at toi = h and toi = 0 both sides give the
+    same state), and gives the time-of-impact dependence of u its right derivative (du/dC = a / |vn1|).
+    A separated contact that is not an impact gets the speculative target -C_spec / h, C_spec its gap along
+    the row's normal. A touching one pushes its overlap beyond `slop` (m) out at -beta (C + slop) / h, at most
+    `PUSH_OUT_SPEED`.
+    Returns (target, target without restitution)."""
+    dv = vn1 - vn0
+    u = -(vn0 + dv * toi / h)
+    bounce = jnp.where(u > cs.threshold, cs.restitution * u, 0)
+    rest = dv * (h - toi) / h
+    push = jnp.minimum(-beta * jnp.minimum(C + slop, 0) / h, PUSH_OUT_SPEED)
+
+    def target(after):
+        return jnp.where(impact, after, jnp.where(C > 0, -C_spec / h, jnp.maximum(after, push)))
+
+    return target(jnp.maximum(bounce + rest, 0)), target(jnp.maximum(rest, 0))
+
+
+def tolerance(scale):
+    """Rounding tolerance of a gap computed from numbers of size `scale`: `ROUNDING` eps scale (`_gap`)."""
+    return ROUNDING * jnp.finfo(scale.dtype).eps * scale
+
+
+def _gap(C, tol):
+    """The gap a row uses: C + tol (`tolerance`), so that a contact touches (gap <= 0) only once it overlaps
+    by more than rounding.
+
+    The position pass leaves the contacts it corrects at C = 0 up to rounding, so that the next step's C is
+    +-1e-17 (float64). Whether such a contact is separated or touching (warm-started, its Baumgarte term
+    active), and whether an approaching one is an impact at toi = C / |vn| (whose derivative, 1 / |vn|, the
+    touching branch does not have) would be decided by the rounding of the program that computes it, and the
+    forward-mode and reverse-mode programs round differently: the drape's jax.grad was 2% off jax.jacfwd.
+    Within the tolerance a contact is separated whatever the sign of its rounding: speculative, or an impact
+    at toi ~ tol / |vn| if it approaches (`_swept`)."""
+    return C + tol
+
+
+def _swept(d, u, R, h, tol):
+    """Contact of two spheres (or a sphere and a point) whose centres are `d` apart ([dim, ...], from the first
+    to the second) and move apart at the constant relative velocity `u` over the step, touching at distance R.
+
+    Returns (n, C, C_n, hit, impact, toi): C = |d| - R; `hit` where the straight-line paths come within R - tol
+    inside the step (`_gap`'s tolerance: a contact left at C = 0 +- rounding by the position pass that
+    approaches is an impact at toi ~ tol / speed, whatever the sign of its rounding), at time toi (the smaller
+    root of |d + t u| = R - tol, in a cancellation-free form); n the unit normal at the time of impact where
+    `hit`, else at the start (`direction`: the last axis where d = 0), and C_n = n . d - R the gap along it.
+    `impact` starts equal to `hit` (`_first_impacts` may clear it). Using the normal at impact, not a
+    linearised gap along the start normal, is what catches glancing impacts of balls that move several
+    diameters per step."""
+    dist, n0 = direction(d)
+    C = dist - R
+    Ci, Ri = _gap(C, tol), R - tol
+    uu = dot(u, u)
+    du = dot(d, u)
+    disc = du * du - uu * (Ci * (dist + Ri))
+    hit = (Ci > 0) & (du < 0) & (disc > 0)
+    root = jnp.sqrt(jnp.where(hit, disc, 1))
+    t = Ci * (dist + Ri) / jnp.where(hit, root - du, 1)
+    hit = hit & (t < h)
+    toi = jnp.where(hit, t, 0)
+    _, n_hit = _norm(d + toi * u)
+    n = jnp.where(hit, n_hit, n0)
+    return n, C, dot(n, d) - R, hit, hit, toi
+
+
+def magnitude(a):
+    """Sum of |a| over the leading (dim) axis: the size of the coordinates a gap is computed from."""
+    return jnp.sum(jnp.abs(a), 0)
+
+
+def _obstacle_geometry(cs: ContactSystem, x, v, h):
+    """(n [Q, dim, *view], C, C_n, hit, impact, toi, tol [Q, *view]) of every particle against every plane,
+    then every sphere, for particles moving at `v` over the step; tol is `_gap`'s rounding tolerance."""
+    ct, dim, nview = cs.ct, x.shape[0], x.ndim - 1
+    out = []
+    r = cs.radius[0]
+    size = magnitude(x) + r
+    for p in range(ct.n_planes):
+        nrm = jnp.broadcast_to(cs.plane_normal[p].reshape((dim,) + (1,) * nview), x.shape)
+        C = jnp.sum(nrm * x, 0) - cs.plane_offset[p] - r
+        tol = tolerance(size + jnp.abs(cs.plane_offset[p]))
+        vn = jnp.sum(nrm * v, 0)
+        Ci = _gap(C, tol)                  # as in `_swept`: the impact is when the gap reaches -tol
+        impact = (Ci > 0) & (Ci + h * vn < 0)
+        out.append((nrm, C, C, impact, impact, jnp.where(impact, Ci / jnp.where(impact, -vn, 1), 0), tol))
+    for s in range(ct.n_spheres):
+        c = cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
+        R = cs.sphere_radius[s] + r
+        tol = tolerance(size + magnitude(c) + R)
+        out.append(_swept(x - c, v, R, h, tol) + (tol,))
+    return tuple(jnp.stack(a) for a in zip(*out))
+
+
+def _first_impacts(ct, obs, pairs, n_particles, index=None):
+    """Keep an impact only if it is the first, within the step, of each particle it involves: a ball that hits
+    another cannot also hit, on its unobstructed path, the ball behind it or the cushion beyond. The later
+    ones stay speculative contacts along their normal at impact (no bounce, no time of impact). `obs`/`pairs`:
+    (n, C, C_n, hit, impact, toi, tol) or None. Returns them with `impact` updated. An impact of a contact that
+    already touches (C <= tol, `_swept`) is a touching contact, given its time of impact only for its
+    derivative: it is always kept, and it hides no other impact."""
+    inf = jnp.inf
+
+    def real(g):
+        return g[3] & (g[1] > g[6])
+
+    ref = (obs if obs is not None else pairs)[5]
+    first = jnp.full((n_particles,), inf, ref.dtype)
+    if obs is not None:
+        first = jnp.min(jnp.where(real(obs), obs[5], inf).reshape(obs[5].shape[0], -1), axis=0)
+    if pairs is not None:
+        ia, ja = (ct.i.array.reshape(-1), ct.j.array.reshape(-1)) if index is None else index
+        t = jnp.where(real(pairs), pairs[5], inf).reshape(-1)
+        first = first.at[ia].min(t).at[ja].min(t)
+        keep = ((t <= first[ia]) & (t <= first[ja])).reshape(pairs[3].shape)
+        pairs = pairs[:4] + (pairs[3] & (keep | ~real(pairs)),) + pairs[5:]
+    if obs is not None:
+        keep = obs[5] <= first.reshape((1,) + obs[5].shape[1:])
+        obs = obs[:4] + (obs[3] & (keep | ~real(obs)),) + obs[5:]
+    return obs, pairs
+
+
+def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None, slop=0.0):
+    """Contact rows at the start of a (sub)step: (obstacle Rows or None, pair Rows or None). `v0` is the
+    velocity at the start of the step, `v` after the external forces and before any impulse. A grid model
+    passes its `partners` [n, K] (from `neighbours`). `slop`: the solver's contact slop, a fraction of the
+    contact distance (`CONTACT_SLOP`; 0: none)."""
+    ct, dim = cs.ct, x.shape[0]
+    xf, vf, v0f, wf = x.reshape(dim, -1), v.reshape(dim, -1), v0.reshape(dim, -1), w.reshape(-1)
+    obs = _obstacle_geometry(cs, x, v, h) if ct.n_obstacles else None
+    pairs, index = None, None
+    if ct.n_pairs or ct.has_grid:
+        ia, ja, valid, index = pair_slots(ct, xf.shape[1], partners)
+        xi, xj, R = xf[:, ia], xf[:, ja], cs.radius_flat[ia] + cs.radius_flat[ja]
+        tol = tolerance(magnitude(xi) + magnitude(xj) + R)
+        pairs = _swept(xj - xi, vf[:, ja] - vf[:, ia], R, h, tol)
+        live = jnp.asarray(valid)          # a padding or empty slot is no impact (it would hide a real one)
+        pairs = pairs[:3] + (pairs[3] & live, pairs[4] & live, pairs[5], tol)
+    obs, pairs = _first_impacts(ct, obs, pairs, xf.shape[1], index)
+
+    def finish(geometry, vn0, vn1, winv, k, distance, window):
+        n, C, C_n, _, impact, toi, tol = geometry
+        toi = jnp.where(impact, toi, 0)
+        gap = _gap(C, tol)
+        s = slop * distance
+        target, target_c = _targets(gap, C_n, vn0, vn1, impact, toi, cs, beta, h, PUSH_SLOPS * s)
+        # Warm-started: touching, impacts, and pairs within the slop of touching either way (a disc of a pile that
+        # lifts off its neighbour by less than the slop keeps the impulse it leant on it with; measured in
+        # docs/contacts.md). Obstacles keep gap <= 0: warm-starting those within the slop as well brought the pile
+        # to rest sooner (0.003 against 0.018 m/s at 8 s) but the float32 drape's gradients 1.9% off float64.
+        warm = impact | (gap <= (s if window else 0))
+        return Rows(n, target, k, winv, toi, gap, target_c, near=C <= tol, warm=warm)
+
+    if obs is not None:
+        n = obs[0]
+        winv = jnp.broadcast_to(w[0], obs[1].shape)
+        obs = finish(obs, jnp.sum(n * v0[None], 1), jnp.sum(n * v[None], 1), winv, L.safe_reciprocal(winv),
+                     cs.radius, False)
+    if pairs is not None:
+        n = pairs[0]
+        winv = wf[ia] + wf[ja]
+        k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype)
+        vn0, vn1 = (dot(n, a[:, ja] - a[:, ia]) for a in (v0f, vf))
+        pairs = finish(pairs, vn0, vn1, winv, k, cs.radius_flat[ia] + cs.radius_flat[ja], True)
+        if index is not None:
+            pairs = pairs._replace(i=ia, j=partners)
+    return obs, pairs
+
+
+# ---- the restitution phases' rows -------------------------------------------------------------------------------
+def compression(f: Optional[Rows]) -> Optional[Rows]:
+    """The rows of the compression phase: every target without its restitution part."""
+    return None if f is None else f._replace(target=f.target_c)
+
+
+def bouncing(obs: Optional[Rows], pairs: Optional[Rows]):
+    """Whether any row asks for a bounce (its target is above its compression target)."""
+    out = jnp.zeros((), bool)
+    for f in (obs, pairs):
+        if f is not None:
+            out = out | jnp.any(f.target > f.target_c)
+    return out
+
+
+def pair_total(ct, w, P, sign_i, index=None):  # noqa: D401
+    """Sum over every pair slot of +w_j P on j and sign_i * w_i P on i: [dim, n] (a scatter-add). `index`:
+    the slots' flat (i, j) (`pair_index`; default the static rounds')."""
+    dim = P.shape[0]
+    wf = w.reshape(-1)
+    ia, ja = (ct.i.array.reshape(-1), ct.j.array.reshape(-1)) if index is None else index
+    Pf = P.reshape(dim, -1)
+    out = jnp.zeros((dim, wf.shape[0]), P.dtype)
+    return out.at[:, ja].add(wf[ja] * Pf).at[:, ia].add(sign_i * wf[ia] * Pf)
+
+
+# ---- rows at position level (XPBD, Penalty) and of XPBD's velocity pass ---------------------------------
+def obstacle_gap(cs: ContactSystem, q: int, p, x=None):
+    """(unit normal [dim, *view], gap [*view]) of every particle at `p` against obstacle q (planes first).
+    With the substep's start positions `x`, a particle that started inside a sphere keeps the normal it had
+    there (`overlap_normal`)."""
+    dim, nview = p.shape[0], p.ndim - 1
+    r = cs.radius[0]
+    if q < cs.ct.n_planes:
+        nrm = jnp.broadcast_to(cs.plane_normal[q].reshape((dim,) + (1,) * nview), p.shape)
+        return nrm, jnp.sum(nrm * p, 0) - cs.plane_offset[q] - r
+    s = q - cs.ct.n_planes
+    c = cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
+    if x is not None:
+        return overlap_normal(x - c, p - c, cs.sphere_radius[s] + r)
+    dist, nrm = direction(p - c)
+    return nrm, dist - cs.sphere_radius[s] - r
+
+
+def pair_gap(cs: ContactSystem, pf, r, xf):
+    """(unit normal [dim, S] from i to j, gap [S]) of pair round r at flat positions pf [dim, n], the substep
+    having started at xf (`overlap_normal`)."""
+    ct = cs.ct
+    i, j = jnp.asarray(ct.i.array)[r], jnp.asarray(ct.j.array)[r]
+    return overlap_normal(xf[:, j] - xf[:, i], pf[:, j] - pf[:, i], cs.radius_flat[i] + cs.radius_flat[j])
+
+
+def _bounce_target(cs: ContactSystem, vn_before):
+    """Restitution target of the velocity pass: max(-e vn_before, 0), e = 0 at or below the threshold."""
+    e = jnp.where(jnp.abs(vn_before) > cs.threshold, cs.restitution, 0)
+    return jnp.maximum(-e * vn_before, 0)
+
+
+def velocity_rows(cs: ContactSystem, w, p, v_before, imp: Impulses, partners=None):
+    """Velocity rows (obstacle Rows or None, pair Rows or None) at the end of the position solve: normals and
+    gaps at `p`, restitution targets from `v_before` (start of the substep, after gravity), and effective
+    masses only for contacts that pushed in this substep (lam_n > 0; the others get k = 0, no impulse). A grid
+    model's pair rows are its `partners`' slots [n, K]."""
+    ct, dim = cs.ct, p.shape[0]
+    obs = pairs = None
+    if ct.n_obstacles:
+        ns, Cs = zip(*(obstacle_gap(cs, q, p) for q in range(ct.n_obstacles)))
+        n, C = jnp.stack(ns), jnp.stack(Cs)
+        winv = jnp.broadcast_to(w[0], C.shape)
+        k = L.safe_reciprocal(winv) * (imp.obs_n > 0).astype(C.dtype)
+        obs = Rows(n, _bounce_target(cs, jnp.sum(n * v_before[None], 1)), k, winv, jnp.zeros_like(C), C)
+    if ct.n_pairs or ct.has_grid:
+        pf, vf, wf = p.reshape(dim, -1), v_before.reshape(dim, -1), w.reshape(-1)
+        ia, ja, valid, _ = pair_slots(ct, pf.shape[1], partners)
+        dist, n = direction(pf[:, ja] - pf[:, ia])
+        C = dist - cs.radius_flat[ia] - cs.radius_flat[ja]
+        winv = wf[ia] + wf[ja]
+        k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype) * (imp.pair_n > 0).astype(C.dtype)
+        vn = jnp.sum(n * (vf[:, ja] - vf[:, ia]), 0)
+        pairs = Rows(n, _bounce_target(cs, vn), k, winv, jnp.zeros_like(C), C)
+        if partners is not None:
+            pairs = pairs._replace(i=ia, j=partners)
+    return obs, pairs
