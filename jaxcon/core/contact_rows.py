@@ -1,6 +1,6 @@
 """The contact kind's rows (docs/contacts.md): planes, spheres and particle pairs made into unilateral rows
 with friction, a time of impact and restitution targets, at velocity level (`rows`) and at position level
-(`obstacle_gap`, `pair_gap`, `velocity_rows`). Solvers consume them (`jaxcon.solvers.contact`); the
+(`obstacle_gap`, `velocity_rows`). Solvers consume them (`jaxcon.solvers.contact`); the
 neighbour grid that lists a grid model's pairs is `jaxcon.core.grid`.
 
 Each contact has a unit normal n (from the obstacle, or from the pair's first particle, towards the particle
@@ -42,6 +42,7 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple, Optional
 
+import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -136,6 +137,136 @@ def pair_index(ct: ContactTopology, pairs: Rows):
     if pairs is not None and pairs.i is not None:
         return pairs.i.reshape(-1), jnp.maximum(pairs.j, 0).reshape(-1)
     return ct.i.array.reshape(-1), ct.j.array.reshape(-1)
+
+
+# ---- how a sweep visits the contact rows (`layout.each_colour`) -------------------------------------------------
+# The contact rows come in three layouts, each a block whose colours `layout.each_colour` runs one after another
+# (`blocks`): obstacle q's rows (one per particle), a round of listed pairs (disjoint pairs), and a grid slot
+# (one row per particle, whose partners may repeat, so its rows share particles). A colour gives the update the
+# relative values of its rows' particles (`rel`, `both`) and writes an impulse back (`apply`); a slot also
+# splits masses between the rows it shares a particle with (`split_mass`). `rows` is a pair (data, multipliers):
+# a slot with no rows is skipped and keeps its multipliers (`lax.cond`: the same values and derivatives).
+
+
+class ObstacleColour:
+    """Obstacle q's rows inside a sweep: one per particle, on the [dim, *view] arrays."""
+
+    split = False
+
+    def __init__(self, q: int):
+        self.q = q
+
+    @staticmethod
+    def rel(a):
+        return a
+
+    @staticmethod
+    def apply(w, a, P):
+        return a + w * P
+
+
+class RoundColour:
+    """A round of listed pairs inside a sweep: particles i, j [S] (flat internal indices) of disjoint pairs,
+    `valid` [S] (padding), and `src` [n], where each particle's change comes from (a gather writes the round
+    back: no scatter)."""
+
+    split = False
+
+    def __init__(self, i, j, src, valid):
+        self.i, self.j, self.src, self.valid = i, j, src, valid
+
+    def rel(self, a):
+        """a_j - a_i of per-particle values a [dim, n]."""
+        return a[:, self.j] - a[:, self.i]
+
+    def both(self, a):
+        """a_i + a_j of per-particle values a [n]."""
+        return a[self.i] + a[self.j]
+
+    def apply(self, w, a, P):
+        """a [dim, n] plus the changes of impulses P [dim, S] on the second particles (-w_i P, +w_j P)."""
+        zero = jnp.zeros((a.shape[0], 1), a.dtype)
+        return a + jnp.take(jnp.concatenate([-w[self.i] * P, w[self.j] * P, zero], -1), self.src, axis=-1)
+
+
+class SlotColour:
+    """A grid slot inside a sweep: particle i's row with its partner j[i] [n] (-1: none), for every i at once."""
+
+    split = True
+
+    def __init__(self, j):
+        self.partner = j
+        self.j = jnp.maximum(j, 0)
+
+    def rel(self, a):
+        return a[:, self.j] - a
+
+    def both(self, a):
+        return a + a[self.j]
+
+    def apply(self, w, a, P):
+        return a.at[:, self.j].add(w[self.j] * P) - w * P
+
+    def split_mass(self, w, act):
+        """Mass splitting's effective masses 1 / (c_i w_i + c_j w_j), c the slot's rows `act` [n] (1 or 0) at
+        each particle (`jaxcon.solvers.contact.jacobi_pass`)."""
+        c = act + jnp.zeros_like(act).at[self.j].add(act)
+        return L.safe_reciprocal(c * w + c[self.j] * w[self.j])
+
+
+class ObstacleBlock:
+    """Every obstacle's rows, [Q, ...] leaves: obstacle by obstacle (planes, then spheres)."""
+
+    def __init__(self, count: int):
+        self.count = count
+
+    def each(self, fn, carry, rows):
+        outs = []
+        for q in range(self.count):
+            carry, out = fn(carry, ObstacleColour(q), jax.tree.map(lambda a: a[q], rows))
+            outs.append(out)
+        return carry, jax.tree.map(lambda *a: jnp.stack(a), *outs)
+
+
+class RoundBlock:
+    """Listed pairs' rows, [..., R, S] leaves: round by round in a `lax.scan`."""
+
+    def __init__(self, ct: ContactTopology):
+        self.ct = ct
+
+    def each(self, fn, carry, rows):
+        ct = self.ct
+        xs = (ct.i.array, ct.j.array, ct.src.array, ct.valid.array, jax.tree.map(lambda a: jnp.moveaxis(a, -2, 0), rows))
+
+        def body(carry, x):
+            i, j, src, valid, row = x
+            return fn(carry, RoundColour(i, j, src, valid), row)
+
+        carry, out = lax.scan(body, carry, xs)
+        return carry, jax.tree.map(lambda a: jnp.moveaxis(a, 0, -2), out)
+
+
+class SlotBlock:
+    """A grid model's pair rows, [..., n, K] leaves, with their `partners` [n, K]: slot by slot in a `lax.scan`;
+    a slot no particle uses (the grid fills each particle's slots from the first, so the last ones are often empty
+    everywhere) is skipped."""
+
+    def __init__(self, partners):
+        self.partners = partners
+
+    def each(self, fn, carry, rows):
+        def body(carry, x):
+            j, (data, lam) = x
+            return lax.cond(jnp.any(j >= 0), lambda c: fn(c, SlotColour(j), (data, lam)), lambda c: (c, lam), carry)
+
+        xs = (jnp.moveaxis(self.partners, -1, 0), jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), rows))
+        carry, out = lax.scan(body, carry, xs)
+        return carry, jax.tree.map(lambda a: jnp.moveaxis(a, 0, -1), out)
+
+
+def pair_block(ct: ContactTopology, partners=None):
+    """The pair rows' block: a grid model's slots (its `partners` [n, K]), else the listed pairs' rounds."""
+    return SlotBlock(partners) if partners is not None else RoundBlock(ct)
 
 
 # ---- rows ------------------------------------------------------------------------------------------------------
@@ -390,14 +521,6 @@ def obstacle_gap(cs: ContactSystem, q: int, p, x=None):
         return overlap_normal(x - c, p - c, cs.sphere_radius[s] + r)
     dist, nrm = direction(p - c)
     return nrm, dist - cs.sphere_radius[s] - r
-
-
-def pair_gap(cs: ContactSystem, pf, r, xf):
-    """(unit normal [dim, S] from i to j, gap [S]) of pair round r at flat positions pf [dim, n], the substep
-    having started at xf (`overlap_normal`)."""
-    ct = cs.ct
-    i, j = jnp.asarray(ct.i.array)[r], jnp.asarray(ct.j.array)[r]
-    return overlap_normal(xf[:, j] - xf[:, i], pf[:, j] - pf[:, i], cs.radius_flat[i] + cs.radius_flat[j])
 
 
 def _bounce_target(cs: ContactSystem, vn_before):

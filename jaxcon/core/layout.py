@@ -234,7 +234,10 @@ def each_colour(block, fn, carry, rows):
     so fn runs once on it; so is a constraint set's colour of its own (`Block.unrolled`). A table block (compact
     layout) runs fn on each of its rows, in order, in a `lax.scan`: `colour` is then a `Row` and every leaf of
     `rows` is that row, [..., width]; a constraint set's table the same way (`SetRow`). `out` (a pytree of
-    per-constraint arrays of the colour) is stacked back to [..., *block.shape]."""
+    per-constraint arrays of the colour) is stacked back to [..., *block.shape]. A contact block
+    (`core.contact_rows`: obstacles, pair rounds, grid slots) runs its colours its own way (`block.each`)."""
+    if hasattr(block, "each"):
+        return block.each(fn, carry, rows)
     if getattr(block, "unrolled", None) is not None:
         return fn(carry, block, rows)
     if getattr(block, "generic", None) is not None:     # a constraint set: its colours [C, W], in order

@@ -19,13 +19,14 @@ from jax import lax
 from jaxcon.core import layout as L
 from jaxcon.core.contact import ContactSystem, Impulses
 from jaxcon.core.contact_rows import (
+    ObstacleBlock,
     Rows,
     direction,
     dot as _dot,
     length as _length,
     obstacle_gap,
     overlap_normal,
-    pair_gap,
+    pair_block,
     pair_index,
     pair_total,
     velocity_rows,
@@ -118,93 +119,53 @@ def finish_row(vrel, f: Rows, mu, ln, new_n, lt):
     return f.n * dn + (new_t - lt), new_n, new_t
 
 
-def _pair_apply(ct, v, r, wi, wj, P):
-    """v [dim, n] plus the velocity changes of round r's impulses P [dim, S] (-wi P on i, +wj P on j)."""
-    zero = jnp.zeros((v.shape[0], 1), v.dtype)
-    src = jnp.asarray(ct.src.array)[r]
-    return v + jnp.take(jnp.concatenate([-wi * P, wj * P, zero], -1), src, axis=-1)
+
 
 
 def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impulses, soft=(None, None)):
-    """One Gauss-Seidel pass over every contact: obstacles one after another (each over all particles at
-    once), then the pair rounds in a loop (a grid model's slots: `grid_pass`). Returns (v, imp); a model
-    without contacts (`cs` None) returns them unchanged.
+    """One Gauss-Seidel pass over every contact: the obstacles' rows, then the pairs', each a block whose colours
+    `layout.each_colour` runs in order (obstacle by obstacle; round by round, or a grid model's slot by slot:
+    `contact_rows.blocks`). Each colour's rows update together from the same v (`_solve_row`); a grid slot's
+    rows, which may share particles, are relaxed by mass splitting: each takes the effective mass
+    1 / (c_i w_i + c_j w_j), c the slot's rows that push at each particle (as `jacobi_pass` does). Returns
+    (v, imp); a model without contacts (`cs` None) returns them unchanged.
 
     `soft` = (obstacle softness, pair softness): SoftStep's (mass_scale, impulse_scale) per row
     (`soft_rows`), each None for rigid rows (`_solve_row`)."""
     if cs is None:
         return v, imp
-    pick = lambda group, k: None if group is None else tuple(None if a is None else a[k] for a in group)  # noqa
-    ct, mu = cs.ct, cs.friction
+    mu = cs.friction
+
+    def colour(w):
+        def update(v, c, rows):
+            (f, s), (ln, lt) = rows
+            vrel = c.rel(v)
+            if c.split:
+                act = ((ln > 0) | (ln + (f.target - _dot(vrel, f.n)) * f.k > 0)) & (f.k > 0)
+                f = f._replace(k=c.split_mass(w, act.astype(v.dtype)) * (f.k > 0).astype(v.dtype))
+            P, ln, lt = _solve_row(vrel, f, mu, ln, lt, s)
+            return c.apply(w, v, P), (ln, lt)
+        return update
+
     on, ot = imp.obs_n, imp.obs_t
     if obs is not None:
-        on, ot = list(on), list(ot)
-        for q in range(ct.n_obstacles):
-            f = Rows(*pick(obs, q))
-            P, on[q], ot[q] = _solve_row(v, f, mu, on[q], ot[q], pick(soft[0], q))
-            v = v + w * P
-        on, ot = jnp.stack(on), jnp.stack(ot)
+        v, (on, ot) = L.each_colour(ObstacleBlock(cs.ct.n_obstacles), colour(w), v, ((obs, soft[0]), (on, ot)))
     pn, pt = imp.pair_n, imp.pair_t
-    if pairs is not None and pairs.i is not None:
-        v, pn, pt = grid_pass(cs, w, v, pairs, pn, pt, soft[1])
-    elif pairs is not None:
+    if pairs is not None:
         dim, shape = v.shape[0], v.shape
-        ia, ja = jnp.asarray(ct.i.array), jnp.asarray(ct.j.array)
-        wf = w.reshape(-1)
-
-        def one_round(r, carry):
-            vf, pn, pt = carry
-            i, j = ia[r], ja[r]
-            f = Rows(pairs.n[:, r], *pick(pairs[1:], r))
-            P, ln, lt = _solve_row(vf[:, j] - vf[:, i], f, mu, pn[r], pt[:, r], pick(soft[1], r))
-            vf = _pair_apply(ct, vf, r, wf[i], wf[j], P)
-            return vf, pn.at[r].set(ln), pt.at[:, r].set(lt)
-
-        vf, pn, pt = lax.fori_loop(0, ct.rounds, one_round, (v.reshape(dim, -1), pn, pt))
+        block = pair_block(cs.ct, pairs.j if pairs.i is not None else None)
+        vf, (pn, pt) = L.each_colour(block, colour(w.reshape(-1)), v.reshape(dim, -1), ((pairs, soft[1]), (pn, pt)))
         v = vf.reshape(shape)
     return v, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
 
-def _slot(a, s):
-    """Slot s of a grid array [..., n, K] (None stays None)."""
-    return None if a is None else jnp.take(a, s, axis=-1)
 
 
-def slot_major(a):
-    """A grid array [..., n, K] as [K, ..., n] (None stays None): what `lax.scan` over the slots takes."""
-    return None if a is None else jnp.moveaxis(a, -1, 0)
 
 
-def grid_pass(cs: ContactSystem, w, v, pairs: Rows, pn, pt, soft=None):
-    """One pass over a grid model's pair rows, slot by slot: the rows of one slot (one per particle, whose
-    partners may repeat) are solved together from the same v, relaxed by mass splitting (each takes the
-    effective mass 1 / (c_i w_i + c_j w_j), c the slot's rows that push at each particle, as
-    `jacobi_pass` does), and the slots follow one another Gauss-Seidel-style, a `lax.scan`
-    over the slots (slot-major copies of the rows, `slot_major`). A slot no row uses (the grid fills each
-    particle's slots from the first, so the last ones are often empty everywhere) is skipped (`lax.cond`: the
-    same values and derivatives). Returns (v, pair_n, pair_t)."""
-    dim, shape = v.shape[0], v.shape
-    wf = w.reshape(-1)
 
-    def one_slot(vf, xs):
-        f, ln, lt, ex = xs
 
-        def solve(vf):
-            j = jnp.maximum(f.j, 0)
-            vrel = vf[:, j] - vf
-            vn = _dot(vrel, f.n)
-            act = (((ln > 0) | (ln + (f.target - vn) * f.k > 0)) & (f.k > 0)).astype(vf.dtype)
-            c = act + jnp.zeros_like(act).at[j].add(act)
-            g = f._replace(k=L.safe_reciprocal(c * wf + c[j] * wf[j]) * (f.k > 0).astype(vf.dtype))
-            P, new_n, new_t = _solve_row(vrel, g, cs.friction, ln, lt, ex)
-            return vf.at[:, j].add(wf[j] * P) - wf * P, (new_n, new_t)
 
-        return lax.cond(jnp.any(f.k > 0), solve, lambda vf: (vf, (ln, lt)), vf)
-
-    xs = (Rows(*(slot_major(a) for a in pairs)), slot_major(pn), slot_major(pt),
-          None if soft is None else tuple(slot_major(a) for a in soft))
-    vf, (pn, pt) = lax.scan(one_slot, v.reshape(dim, -1), xs)
-    return vf.reshape(shape), jnp.moveaxis(pn, 0, -1), jnp.moveaxis(pt, 0, -1)
 
 
 def _obstacle_frame(obs: Rows):
@@ -412,44 +373,26 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
             x = x + n * (jnp.maximum(-C - slop * r, 0) * (k > 0))
         return x
 
-    def pair_rounds(x):
-        ia, ja = jnp.asarray(ct.i.array), jnp.asarray(ct.j.array)
-        valid = jnp.asarray(ct.valid.array)
+    def pairs_pass(x):           # round by round, or slot by slot (mass splitting over a slot's overlaps)
         wf, rf = w.reshape(-1), cs.radius_flat
 
-        def one_round(q, xf):
-            i, j = ia[q], ja[q]
-            dist, n = direction(xf[:, j] - xf[:, i])
-            winv = wf[i] + wf[j]
-            push = jnp.maximum((1 - slop) * (rf[i] + rf[j]) - dist, 0) * L.safe_reciprocal(winv) * valid[q]
-            return _pair_apply(ct, xf, q, wf[i], wf[j], n * push)
+        def colour(xf, c, rows):
+            dist, n = direction(c.rel(xf))
+            over = jnp.maximum((1 - slop) * c.both(rf) - dist, 0)
+            if c.split:
+                over = over * (rows[0] > 0)
+                P = n * (over * c.split_mass(wf, (over > 0).astype(xf.dtype)))
+            else:
+                P = n * (over * L.safe_reciprocal(c.both(wf)) * c.valid)
+            return c.apply(wf, xf, P), None
 
-        return lax.fori_loop(0, ct.rounds, one_round, x.reshape(dim, -1)).reshape(shape)
-
-    def grid_pairs(x):
-        wf, rf = w.reshape(-1), cs.radius_flat
-
-        def one_slot(xf, xs):                     # slot by slot, as grid_pass (empty slots skipped)
-            jj, kk = xs
-
-            def project(xf):
-                j = jnp.maximum(jj, 0)
-                dist, n = direction(xf[:, j] - xf)
-                over = jnp.maximum((1 - slop) * (rf + rf[j]) - dist, 0) * (kk > 0)
-                hit = (over > 0).astype(xf.dtype)
-                c = hit + jnp.zeros_like(hit).at[j].add(hit)
-                P = n * (over * L.safe_reciprocal(c * wf + c[j] * wf[j]))
-                return xf.at[:, j].add(wf[j] * P) - wf * P
-
-            return lax.cond(jnp.any(kk > 0), project, lambda xf: xf, xf), None
-
-        return lax.scan(one_slot, x.reshape(dim, -1), (slot_major(pairs.j), slot_major(pairs.k)))[0].reshape(shape)
+        block = pair_block(ct, None if pairs is None or pairs.i is None else pairs.j)
+        kk = None if pairs is None or pairs.i is None else pairs.k
+        return L.each_colour(block, colour, x.reshape(dim, -1), (kk, None))[0].reshape(shape)
 
     def one_pass(_, x):
-        if ct.n_pairs:
-            x = pair_rounds(x)
-        elif ct.has_grid:
-            x = grid_pairs(x)
+        if ct.n_pairs or ct.has_grid:
+            x = pairs_pass(x)
         return obstacles(x) if ct.n_obstacles else x
 
     if passes is None:
@@ -515,71 +458,45 @@ def _position_row(disp, n, C, k, mu, ln, lt):
 
 
 def position_pass(cs: ContactSystem, w, x, p, imp: Impulses, partners=None):
-    """One position-level pass over every contact (the section's comment above): obstacles, then the pair rounds (a grid
-    model's `partners` [n, K]: its slots, `_grid_project`). x: positions at the start of the substep, p:
-    current positions [dim, *view]; imp: position multipliers (kg m) accumulated in this substep. Returns
-    (p, imp)."""
+    """One position-level pass over every contact (the section's comment above): obstacles, then the pairs, each
+    block colour by colour (`layout.each_colour`: round by round, or a grid model's `partners` [n, K] slot by
+    slot, where the rows of one slot, whose particles may repeat, are relaxed by mass splitting over those that
+    push or overlap). x: positions at the start of the substep, p: current positions [dim, *view]; imp: position
+    multipliers (kg m) accumulated in this substep. Returns (p, imp)."""
     ct, mu = cs.ct, cs.friction
     on, ot = imp.obs_n, imp.obs_t
     if ct.n_obstacles:
-        on, ot = list(on), list(ot)
         k = L.safe_reciprocal(w[0])
-        for q in range(ct.n_obstacles):
-            n, C = obstacle_gap(cs, q, p, x)
-            P, on[q], ot[q] = _position_row(p - x, n, C, k, mu, on[q], ot[q])
-            p = p + w * P
-        on, ot = jnp.stack(on), jnp.stack(ot)
+
+        def obstacle(p, c, lam):
+            n, C = obstacle_gap(cs, c.q, p, x)
+            P, ln, lt = _position_row(p - x, n, C, k, mu, *lam)
+            return p + w * P, (ln, lt)
+
+        p, (on, ot) = L.each_colour(ObstacleBlock(ct.n_obstacles), obstacle, p, (on, ot))
     pn, pt = imp.pair_n, imp.pair_t
-    if ct.n_pairs:
+    if ct.n_pairs or ct.has_grid:
         dim, shape = p.shape[0], p.shape
-        ia, ja = jnp.asarray(ct.i.array), jnp.asarray(ct.j.array)
-        valid = jnp.asarray(ct.valid.array, p.dtype)
-        wf, xf = w.reshape(-1), x.reshape(dim, -1)
+        wf, xf, r = w.reshape(-1), x.reshape(dim, -1), cs.radius_flat
 
-        def one_round(r, carry):
-            pf, pn, pt = carry
-            i, j = ia[r], ja[r]
-            n, C = pair_gap(cs, pf, r, xf)
-            disp = (pf[:, j] - xf[:, j]) - (pf[:, i] - xf[:, i])
-            k = L.safe_reciprocal(wf[i] + wf[j]) * valid[r]
-            P, ln, lt = _position_row(disp, n, C, k, mu, pn[r], pt[:, r])
-            pf = _pair_apply(ct, pf, r, wf[i], wf[j], P)
-            return pf, pn.at[r].set(ln), pt.at[:, r].set(lt)
+        def pair(pf, c, rows):
+            _, (ln, lt) = rows
+            n, C = overlap_normal(c.rel(xf), c.rel(pf), c.both(r))
+            disp = c.rel(pf - xf)
+            if c.split:
+                act = ((c.partner >= 0) & ((C < 0) | (ln > 0))).astype(pf.dtype)
+                k = c.split_mass(wf, act) * act
+            else:
+                k = L.safe_reciprocal(c.both(wf)) * c.valid
+            P, ln, lt = _position_row(disp, n, C, k, mu, ln, lt)
+            return c.apply(wf, pf, P), (ln, lt)
 
-        pf, pn, pt = lax.fori_loop(0, ct.rounds, one_round, (p.reshape(dim, -1), pn, pt))
+        pf, (pn, pt) = L.each_colour(pair_block(ct, partners), pair, p.reshape(dim, -1), (None, (pn, pt)))
         p = pf.reshape(shape)
-    elif ct.has_grid:
-        p, pn, pt = _grid_project(cs, w, x, p, partners, pn, pt)
     return p, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
 
-def _grid_project(cs: ContactSystem, w, x, p, partners, pn, pt):
-    """`position_pass`'s pass over a grid model's pairs, slot by slot as `contact.grid_pass`: the rows of one slot
-    (one per particle, whose partners may repeat) are projected together from the same positions, relaxed by
-    mass splitting (k = 1 / (c_i w_i + c_j w_j), c the slot's rows at each particle that push or overlap), and
-    the slots follow one another in a `lax.scan`; a slot no particle uses is skipped. Returns (p, pair_n
-    [n, K], pair_t [dim, n, K])."""
-    dim, shape = p.shape[0], p.shape
-    wf, xf, r = w.reshape(-1), x.reshape(dim, -1), cs.radius_flat
 
-    def one_slot(pf, xs):
-        j, ln, lt = xs
-
-        def solve(pf):
-            jc = jnp.maximum(j, 0)
-            n, C = overlap_normal(xf[:, jc] - xf, pf[:, jc] - pf, r + r[jc])
-            disp = (pf[:, jc] - xf[:, jc]) - (pf - xf)
-            act = ((j >= 0) & ((C < 0) | (ln > 0))).astype(pf.dtype)
-            c = act + jnp.zeros_like(act).at[jc].add(act)
-            k = L.safe_reciprocal(c * wf + c[jc] * wf[jc]) * act
-            P, new_n, new_t = _position_row(disp, n, C, k, cs.friction, ln, lt)
-            return pf.at[:, jc].add(wf[jc] * P) - wf * P, (new_n, new_t)
-
-        return lax.cond(jnp.any(j >= 0), solve, lambda pf: (pf, (ln, lt)), pf)
-
-    xs = (slot_major(partners), slot_major(pn), slot_major(pt))
-    pf, (pn, pt) = lax.scan(one_slot, p.reshape(dim, -1), xs)
-    return pf.reshape(shape), jnp.moveaxis(pn, 0, -1), jnp.moveaxis(pt, 0, -1)
 
 
 def position_velocity_pass(cs: ContactSystem, w, p, v_before, v, imp: Impulses, h, partners=None):
