@@ -23,15 +23,15 @@ Friction is solved after each contact's normal row, as a 2-D or 3-D vector clamp
 
 Neighbour grid (a model built with ``collide="grid"``, or ``collide=True`` above 256 particles; one search per
 step, shared by its substeps, `common.grid_substepped`): the pairs are
-found at the start of every step by `neighbours` (a spatial hash of the positions) and kept in K slots per
+found at the start of every step by `grid.neighbours` (a spatial hash of the positions) and kept in K slots per
 particle; their rows are those above, with `Rows.i`/`Rows.j` [n, K] naming the particles (j = -1: empty slot,
 k = 0). A PGS sweep solves them after the obstacles slot by slot, the rows of one slot together with mass
-splitting (`grid_pass`); the position safety pass projects them the same way, and the warm start matches last
+splitting (`SlotBlock`); the position safety pass projects them the same way, and the warm start matches last
 step's impulses by partner (a slot's impulse is carried over only if the same pair is listed again).
 `Impulses.partners` [n, K] and `Impulses.overflow` (the candidates that did not fit) travel with the impulses.
 The time-of-impact correction applies to grid pairs as to listed ones. After the solve, `common.grid_step`
-checks that no unlisted pair touched on the paths the solve gave (`path_search`, `unsolved`), solving the
-step again with those pairs if one did.
+checks that no unlisted pair touched on the paths the solve gave (`grid.path_search`, `grid.unsolved`),
+solving the step again with those pairs if one did.
 
 Start overlaps (a particle inside an obstacle or another particle) are pushed out at no more than
 `PUSH_OUT_SPEED`, along `direction` (the last axis where the centres coincide). Gaps within rounding of 0
@@ -148,7 +148,18 @@ def pair_index(ct: ContactTopology, pairs: Rows):
 # a slot with no rows is skipped and keeps its multipliers (`lax.cond`: the same values and derivatives).
 
 
-class ObstacleColour:
+class Unilateral:
+    """What the row update (`rows.solve`, `rows.accumulate`) asks of a colour of contact rows: every row is
+    unilateral (lam_n >= 0) and solved on its own."""
+
+    all_rope, rope, star = True, None, False
+
+
+#: Every contact row at once (Jacobi's update, which has no colours).
+UNILATERAL = Unilateral()
+
+
+class ObstacleColour(Unilateral):
     """Obstacle q's rows inside a sweep: one per particle, on the [dim, *view] arrays."""
 
     split = False
@@ -165,7 +176,7 @@ class ObstacleColour:
         return a + w * P
 
 
-class RoundColour:
+class RoundColour(Unilateral):
     """A round of listed pairs inside a sweep: particles i, j [S] (flat internal indices) of disjoint pairs,
     `valid` [S] (padding), and `src` [n], where each particle's change comes from (a gather writes the round
     back: no scatter)."""
@@ -189,7 +200,7 @@ class RoundColour:
         return a + jnp.take(jnp.concatenate([-w[self.i] * P, w[self.j] * P, zero], -1), self.src, axis=-1)
 
 
-class SlotColour:
+class SlotColour(Unilateral):
     """A grid slot inside a sweep: particle i's row with its partner j[i] [n] (-1: none), for every i at once."""
 
     split = True
@@ -236,7 +247,8 @@ class RoundBlock:
 
     def each(self, fn, carry, rows):
         ct = self.ct
-        xs = (ct.i.array, ct.j.array, ct.src.array, ct.valid.array, jax.tree.map(lambda a: jnp.moveaxis(a, -2, 0), rows))
+        rows = jax.tree.map(lambda a: jnp.moveaxis(a, -2, 0), rows)
+        xs = (ct.i.array, ct.j.array, ct.src.array, ct.valid.array, rows)
 
         def body(carry, x):
             i, j, src, valid, row = x

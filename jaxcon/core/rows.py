@@ -20,7 +20,6 @@ from typing import Any, NamedTuple, Optional
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
 
 from jaxcon.core import layout as L
 
@@ -160,3 +159,53 @@ def apply(topo, block, f, v, dlam):
 def compliant(f) -> Optional[Array]:
     """The rows' compliance where some row may be compliant, else None (rods and ropes: None)."""
     return getattr(f, "alpha", None)
+
+
+# ---- the velocity-level row update, one for every kind and every sequential-impulse solver --------------------
+# A colour's rows change their accumulated multipliers by `solve` (rhs: the rows' rel + bias) and are projected
+# by `accumulate` where unilateral: PGS's sweeps and implicit adjoint, Jacobi, SoftStep (which scales the change
+# by its softness), split impulses and RATTLE's velocity stage for the constraint rows, and the contact rows'
+# normal update (`solvers.contact`: rel = -vn, bias = the contact's target velocity) in all of them.
+
+
+def clamp(block, lam):
+    """Project accumulated multipliers of a block (or a colour) onto lam >= 0 where its rows are unilateral:
+    every row of a block with `all_rope` (ropes only, a unilateral set, contacts), the rope rows of a mixed one."""
+    if block.all_rope:
+        return jnp.maximum(lam, 0)
+    if block.rope is not None:
+        return jnp.where(block.rope.array, jnp.maximum(lam, 0), lam)
+    return lam
+
+
+def accumulate(block, lam, step):
+    """lam + step, projected onto lam >= 0 where the rows are unilateral (`clamp`)."""
+    return clamp(block, lam + step)
+
+
+class Spring(NamedTuple):
+    """A set's rows' implicit spring over a step h (`gamma`): g = alpha / h^2 and the reciprocal of the row's
+    J M^-1 J^T + g (0 where the row is inactive), computed once per (sub)step rather than in every sweep."""
+
+    g: Array
+    inv: Array
+
+
+def gamma(f, h):
+    """A set's rows' compliance term alpha / h^2 (velocity level: the implicit spring of compliance alpha over a
+    step h) with its solve's reciprocal (`Spring`), or None for rods and ropes."""
+    a = compliant(f)
+    if a is None:
+        return None
+    g = a / (h * h)
+    return Spring(g, L.safe_reciprocal(f.s + g) * (f.k > 0).astype(g.dtype))
+
+
+def solve(topo, blk, f, rhs, lam, g):
+    """The multiplier changes of one colour's rows with right-hand side `rhs` (rel + bias): `layout.block_solve`,
+    or for a set's compliant rows (`g`: their `Spring`, g = alpha / h^2) (rhs - g lam) / (J M^-1 J^T + g), the
+    implicit spring (XPBD's update at velocity level: at rest, C = alpha * force; its warm start:
+    `solvers.common.warm_rows`)."""
+    if g is None:
+        return L.block_solve(topo, blk, f, rhs)
+    return (rhs - g.g * lam) * g.inv

@@ -51,15 +51,6 @@ def frames(sys: System, x) -> tuple:
     return tuple(out)
 
 
-def clamp_ropes(blk, lam):
-    """Project accumulated impulses of a block onto lam >= 0 where the constraint is a rope."""
-    if blk.all_rope:
-        return jnp.maximum(lam, 0)
-    if blk.rope is not None:
-        return jnp.where(blk.rope.array, jnp.maximum(lam, 0), lam)
-    return lam
-
-
 def apply_impulses(sys: System, v, fr: tuple, lam: tuple):
     """v + M^-1 J^T lam for every block (tension convention: lam > 0 pulls the endpoints together)."""
     for blk, f, l in zip(sys.topology.blocks, fr, lam):
@@ -67,37 +58,10 @@ def apply_impulses(sys: System, v, fr: tuple, lam: tuple):
     return v
 
 
-class Spring(NamedTuple):
-    """A set's rows' implicit spring over a step h (`gamma`): g = alpha / h^2 and the reciprocal of the row's
-    J M^-1 J^T + g (0 where the row is inactive), computed once per (sub)step rather than in every sweep."""
-
-    g: Array
-    inv: Array
-
-
-def gamma(f, h):
-    """A set's rows' compliance term alpha / h^2 (velocity level: the implicit spring of compliance alpha over a
-    step h) with its solve's reciprocal (`Spring`), or None for rods and ropes."""
-    a = R.compliant(f)
-    if a is None:
-        return None
-    g = a / (h * h)
-    return Spring(g, L.safe_reciprocal(f.s + g) * (f.k > 0).astype(g.dtype))
-
-
-def row_solve(topo, blk, f, rhs, lam, g):
-    """The multiplier changes of one colour's rows with right-hand side `rhs` (rel + bias): `layout.block_solve`,
-    or for a set's compliant rows (`g`: their `Spring`, g = alpha / h^2) (rhs - g lam) / (J M^-1 J^T + g), the
-    implicit spring (XPBD's update at velocity level: at rest, C = alpha * force; its warm start: `warm_rows`)."""
-    if g is None:
-        return L.block_solve(topo, blk, f, rhs)
-    return (rhs - g.g * lam) * g.inv
-
-
 def velocity_bias(topo: Topology, fr: tuple, beta, h, slop=None) -> tuple:
     """Per-block velocity bias: (beta / h) C for rods and taut ropes, the speculative C / h for slack ropes (the
     rope may close the gap within this (sub)step but no further); a constraint set's unilateral rows as ropes, its
-    compliant rows C / h (`row_solve` softens them). Split impulses pass `slop` (`split_slop`), per block the
+    compliant rows C / h (`rows.solve` softens them). Split impulses pass `slop` (`split_slop`), per block the
     error up to which Baumgarte corrects it; a larger C gets no bias (`split_position_pass` removes it without
     touching the velocities)."""
     out = []
@@ -116,9 +80,9 @@ def velocity_bias(topo: Topology, fr: tuple, beta, h, slop=None) -> tuple:
 def warm_rows(f, lam, h):
     """The previous impulses `lam` of a block that a velocity-level (sub)step of length h starts from: all of them,
     but a constraint set's compliant row's scaled by gamma / (J M^-1 J^T + gamma) = alpha / (alpha + h^2 J M^-1 J^T)
-    (`gamma`): in full where the spring is soft for the step, not at all where it is stiff.
+    (`rows.gamma`): in full where the spring is soft for the step, not at all where it is stiff.
 
-    A compliant row's solve (`row_solve`) converges to the same impulse from any start; the warm start only helps
+    A compliant row's solve (`rows.solve`) converges to the same impulse from any start; the warm start only helps
     sweeps that do not converge. A soft spring's impulse (gamma well above J M^-1 J^T: h omega well below 1, omega =
     sqrt(J M^-1 J^T / alpha) the row's own frequency) is its force h C / alpha, smooth in the positions: the last
     one is a good start, and the rows around it need it (the compliant 5-link arm of tests/test_constraints.py at
@@ -147,7 +111,7 @@ def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, h, factor=1.0, gradient
         lam_ws = lax.stop_gradient(lam_ws)
     if not (isinstance(factor, (int, float)) and factor == 1):     # a plain 1 costs nothing
         lam_ws = tuple(l * factor for l in lam_ws)
-    lam = tuple(clamp_ropes(blk, warm_rows(f, l, h)) * (f.k > 0).astype(f.k.dtype)
+    lam = tuple(R.clamp(blk, warm_rows(f, l, h)) * (f.k > 0).astype(f.k.dtype)
                 for blk, f, l in zip(sys.topology.blocks, fr, lam_ws))
     return apply_impulses(sys, v, fr, lam), lam
 
@@ -207,7 +171,7 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_
             dmu = L.block_solve(topo, blk, _Rows(d * inv, wi, wj, k), dist - rest - alpha * mu, alpha)
         else:
             dmu = jacobi_relaxation * (dist - rest - alpha * mu) * k
-        new = clamp_ropes(blk, mu + dmu * (inv > 0).astype(inv.dtype))
+        new = R.accumulate(blk, mu, dmu * (inv > 0).astype(inv.dtype))
         q = d * (((new - mu) if blk.has_rope else dmu) * inv)
         return wi * q, -wj * q, new
 
@@ -220,7 +184,7 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_
             dmu = dmu * (f.alpha == 0).astype(dmu.dtype)
         if jacobi_relaxation is not None:
             dmu = jacobi_relaxation * dmu
-        new = clamp_ropes(blk, mu + dmu)
+        new = R.accumulate(blk, mu, dmu)
         return f.Jw * (new - mu), new
 
     def colour(p, blk, rows):
@@ -326,7 +290,7 @@ def shake_sweep(sys: System, fr0: tuple, h, tol=0.0):
             upd = L.block_solve(topo, blk, f, rhs)
         else:
             upd = jnp.where(live & (jnp.abs(res) > tol * 2 * r2), rhs * f.k, 0)
-        new = clamp_ropes(blk, mu + upd)
+        new = R.accumulate(blk, mu, upd)
         p = f.n * (new - mu)
         return f.wi * p, -f.wj * p, new
 
@@ -346,7 +310,7 @@ def shake_sweep(sys: System, fr0: tuple, h, tol=0.0):
         live = (f0.k > 0) & (f.k > 0) & (along > 0) & (f0.alpha == 0)
         ss = f.s * f0.s                  # 0 where a row has no gradient: sqrt's derivative there is infinite
         floor = 0.5 * jnp.sqrt(jnp.where(ss > 0, ss, 1)) * (ss > 0).astype(ss.dtype)
-        new = clamp_ropes(blk, mu + jnp.where(live, f.C / jnp.where(live, jnp.maximum(along, floor), 1), 0))
+        new = R.accumulate(blk, mu, jnp.where(live, f.C / jnp.where(live, jnp.maximum(along, floor), 1), 0))
         q = f0.Jw * (new - mu)
         return (L.add_rows(topo, blk, x, q), L.add_rows(topo, blk, v, q / h)), new
 

@@ -17,8 +17,10 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxcon.core import layout as L
+from jaxcon.core import rows as R
 from jaxcon.core.contact import ContactSystem, Impulses
 from jaxcon.core.contact_rows import (
+    UNILATERAL,
     ObstacleBlock,
     Rows,
     direction,
@@ -54,19 +56,17 @@ GRID_PASS_STOP = 0.1
 
 
 def _solve_row(vrel, f: Rows, mu, ln, lt, soft=None):
-    """One contact row, the velocity-level update every sequential-impulse solver uses: normal impulse
-    lam_n += k (target - vn), clamped >= 0, then friction (clamped to the disc mu lam_n). `soft` =
-    (mass_scale, impulse_scale), each of the rows' shape, makes it a soft row (SoftStep, `soft_rows`):
-    lam_n += mass_scale k (target - vn) - impulse_scale lam_n. Returns (impulse change P [dim, ...] on the
-    second body, new lam_n, new lam_t)."""
-    if soft is None:
-        vn = _dot(vrel, f.n)
-        new_n = jnp.maximum(ln + (f.target - vn) * f.k, 0)
-    else:
+    """One contact row at velocity level: the normal impulse by the row update of every kind (`rows.solve` with
+    rel = -vn, the rate of C_lib = -gap, and bias = the row's target: lam_n += k (target - vn); `rows.accumulate`:
+    clamped >= 0), then friction (`finish_row`). `soft` = (mass_scale, impulse_scale), each of the rows' shape,
+    makes it a soft row (SoftStep, `soft_rows`) as SoftStep's constraint rows are: the change is mass_scale times
+    that minus impulse_scale lam_n. Returns (impulse change P [dim, ...] on the second body, new lam_n, new
+    lam_t)."""
+    step = R.solve(None, UNILATERAL, f, f.target - _dot(vrel, f.n), ln, None)
+    if soft is not None:
         mass_scale, impulse_scale = soft
-        vn = jnp.sum(vrel * f.n, 0)
-        new_n = jnp.maximum(ln + mass_scale * f.k * (f.target - vn) - impulse_scale * ln, 0)
-    return finish_row(vrel, f, mu, ln, new_n, lt)
+        step = mass_scale * step - impulse_scale * ln
+    return finish_row(vrel, f, mu, ln, R.accumulate(UNILATERAL, ln, step), lt)
 
 
 # SoftStep's contacts, Box2D v3 style (Erin Catto, "Solver2D", 2024; box2d/src/contact_solver.c).
@@ -117,9 +117,6 @@ def finish_row(vrel, f: Rows, mu, ln, new_n, lt):
     limit = mu * new_n
     new_t = new_t * jnp.where(length >= limit, limit * inv, 1)
     return f.n * dn + (new_t - lt), new_n, new_t
-
-
-
 
 
 def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impulses, soft=(None, None)):
@@ -429,7 +426,7 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
 #   resulting |lam_t| <= mu lam_n; otherwise nothing is added (the kinetic part is the velocity pass's), and a
 #   lam_t left above a cone that shrank is scaled back onto it. Obstacles are solved one after another, each
 #   for all particles at once; pairs round by round (a loop over the rounds, as `sweep`), a grid
-#   model's pairs slot by slot (`_grid_project`).
+#   model's pairs slot by slot (mass splitting over a slot's rows that push or overlap).
 # * `position_velocity_pass` (once, after v = (p - x) / h): each contact with lam_n > 0 gets one velocity row, solved by
 #   `sweep` starting from the position impulses lam / h: the normal velocity is set to
 #   max(-e vn_before, 0) (restitution; vn_before is the normal relative velocity at the start of the substep
@@ -446,7 +443,7 @@ def _position_row(disp, n, C, k, mu, ln, lt):
     """One contact at position level: normal multiplier (accumulated, >= 0), then static friction. `disp` is
     the second body's displacement over the substep relative to the first, k = 1 / (w_i + w_j) (0: no row).
     Returns (position impulse change P [dim, ...] on the second body, new lam_n, new lam_t)."""
-    new_n = jnp.maximum(ln - C * k, 0)
+    new_n = R.accumulate(UNILATERAL, ln, -C * k)        # the row update of every kind, at position level
     disp_t = disp - n * jnp.sum(disp * n, 0)
     stick = lt - disp_t * k
     limit = mu * new_n

@@ -16,9 +16,6 @@ from jaxcon.core.system import Solver
 from jaxcon.solvers import contact
 from jaxcon.solvers.common import (
     check_stabilization,
-    clamp_ropes,
-    gamma,
-    row_solve,
     run_substeps,
     solve_phases,
     split_position_pass,
@@ -134,7 +131,7 @@ class Jacobi(Solver):
         share = jnp.asarray(self.slop, dtype)
         b = step_begin(sys, x, v, lam_ws, beta, h, share if split else None, self.warm_start, found=found)
         base = None if relax is not None else row_counts(topo, b.fr, sys.w)
-        springs = tuple(gamma(f, h) for f in b.fr)
+        springs = tuple(R.gamma(f, h) for f in b.fr)
 
         def iterations(obs, pairs):
             def iterate(carry):
@@ -180,7 +177,7 @@ def _split_mass(topo, blk, f, count):
 
 def rows_pass(topo, fr, bias, springs, v, lam, count, relax):
     """Jacobi update of every constraint row from the same `v`: (dv, lam), each row's change
-    `common.row_solve` (a set's compliant rows as implicit springs) scaled by `relax`, or, with the
+    `rows.solve` (a set's compliant rows as implicit springs) scaled by `relax`, or, with the
     per-particle counts `count` [1, *view] (mass splitting), the same update with the effective mass
     1 / (c_i w_i + c_j w_j) (a set's rows: J M^-1 J^T with each inverse mass multiplied by its count)."""
     dv = jnp.zeros_like(v)
@@ -188,13 +185,13 @@ def rows_pass(topo, fr, bias, springs, v, lam, count, relax):
     for blk, f, b, g, l in zip(topo.blocks, fr, bias, springs, lam):
         rhs = R.rel(topo, blk, f, v) + b
         if count is None:
-            step = relax * (rhs * f.k if g is None else row_solve(topo, blk, f, rhs, l, g))
+            step = relax * (rhs * f.k if g is None else R.solve(topo, blk, f, rhs, l, g))
         else:
             active = (f.k > 0).astype(f.k.dtype)
             s = _split_mass(topo, blk, f, count)
             step = rhs * L.safe_reciprocal(s) * active if g is None else \
                 (rhs - g.g * l) * L.safe_reciprocal(s + g.g) * active
-        nl = clamp_ropes(blk, l + step)
+        nl = R.accumulate(blk, l, step)
         dv = R.apply(topo, blk, f, dv, nl - l)
         new.append(nl)
     return dv, tuple(new)

@@ -18,9 +18,6 @@ from jaxcon.solvers import contact
 from jaxcon.solvers.common import (
     apply_impulses,
     check_stabilization,
-    clamp_ropes,
-    gamma,
-    row_solve,
     run_substeps,
     solve_phases,
     split_position_pass,
@@ -175,13 +172,13 @@ class PGS(Solver):
     @staticmethod
     def _block_sweep(topo, fr, bias, h):
         """One Gauss-Seidel pass over the constraint colours: (v, lam) -> (v, lam). Every kind's rows through
-        `rows.rel` / `rows.apply` (`common.row_solve`: a set's compliant rows as implicit springs)."""
+        `rows.rel` / `rows.apply` (`rows.solve`: a set's compliant rows as implicit springs; `rows.accumulate`)."""
         def colour(v, blk, rows):
             f, b, g, lam = rows
-            new = clamp_ropes(blk, lam + row_solve(topo, blk, f, R.rel(topo, blk, f, v) + b, lam, g))
+            new = R.accumulate(blk, lam, R.solve(topo, blk, f, R.rel(topo, blk, f, v) + b, lam, g))
             return R.apply(topo, blk, f, v, new - lam), new
 
-        springs = tuple(gamma(f, h) for f in fr)          # once per (sub)step, outside the sweeps
+        springs = tuple(R.gamma(f, h) for f in fr)          # once per (sub)step, outside the sweeps
 
         def sweep(v, lam):
             lam = list(lam)
@@ -200,7 +197,7 @@ class PGS(Solver):
                              "has ropes or unilateral constraints (inequalities). Use implicit=False for them.")
         v_free = apply_impulses(sys, v, fr, tuple(-l for l in lam0))     # undo the warm start
         zero_v = jnp.zeros_like(v)
-        gs = tuple(gamma(f, h) for f in fr)
+        gs = tuple(R.gamma(f, h) for f in fr)
 
         def relative(u):
             return tuple(R.rel(topo, blk, f, u) for blk, f in zip(topo.blocks, fr))
@@ -212,7 +209,7 @@ class PGS(Solver):
         def solve(_, rhs, guess=lax.stop_gradient(lam0)):
             def colour(u, blk, rows):
                 f, r, g, l = rows
-                d = row_solve(topo, blk, f, R.rel(topo, blk, f, u) + r, l, g)
+                d = R.solve(topo, blk, f, R.rel(topo, blk, f, u) + r, l, g)
                 return R.apply(topo, blk, f, u, d), l + d
 
             def sweep(_, carry):
@@ -280,7 +277,7 @@ def packed_sweeps(topo, fr, bias, v, lam, iterations, v_free, ws):
         v, lm = S[:nv].reshape(v_shape), S[nv:nv + M]
         dl = S[nv + M:nv + M + rows[c]].reshape(shapes[c])
         old = lm[off[c]:off[c + 1]].reshape(shapes[c])
-        new = clamp_ropes(blk, old + dl)
+        new = R.accumulate(blk, old, dl)
         p = f.n * (new - old)
         upd = (blk, f.wi * p, -f.wj * p)
         nxt = (c + 1) % C

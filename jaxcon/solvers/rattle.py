@@ -12,7 +12,7 @@ from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
-from jaxcon.solvers.common import clamp_ropes, frames, shake_sweep
+from jaxcon.solvers.common import frames, shake_sweep
 
 # A sweep loop is unrolled when it has at most _UNROLL_ITERATIONS iterations and iterations times the code blocks
 # one sweep emits (one per topology block: a colour each in the unrolled layout; a table, star or constraint set
@@ -92,14 +92,14 @@ class RATTLE(Solver):
                     held = (mu > 0) | (f.C >= 0)
                     live = live & (held if blk.all_rope else (held | ~blk.rope.array))
                 step = jnp.where(live, rel * f.k, 0)
-                new = clamp_ropes(blk, lam + step)
+                new = R.accumulate(blk, lam, step)
                 return R.apply(topo, blk, f, v, new - lam), new
             active = jnp.abs(rel) * h > tol * r
             if blk.has_rope:  # a rope that is slack after the drift does not constrain the velocity
                 taut = f.C > -tol * jnp.maximum(r, tiny)
                 active = active & (taut if blk.all_rope else (taut | ~blk.rope.array))
             step = L.block_solve(topo, blk, f, rel) if getattr(blk, "star", False) else jnp.where(active, rel * f.k, 0)
-            new = clamp_ropes(blk, lam + step)
+            new = R.accumulate(blk, lam, step)
             return R.apply(topo, blk, f, v, new - lam), new
 
         def project(_, carry):

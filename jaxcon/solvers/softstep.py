@@ -15,7 +15,7 @@ from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact
-from jaxcon.solvers.common import (apply_impulses, clamp_ropes, frames, gamma, row_solve, run_substeps,
+from jaxcon.solvers.common import (apply_impulses, frames, run_substeps,
                                    split_contacts, warm_rows, with_contacts, with_found)
 
 
@@ -34,7 +34,7 @@ def soft_coefficients(hertz, damping_ratio, h):
 def _sweep(topo, v, lam, fr, bias, mass_scale, impulse_scale, inv_h, spring=True):
     """One Gauss-Seidel sweep over the constraint colours with soft (or, mass_scale 1 and impulse_scale 0,
     rigid) rows; a slack rope (or unilateral row) is speculative and rigid. A constraint set's compliant rows
-    are their own springs instead (`common.row_solve`, bias C / h; warm-started by `common.warm_rows`;
+    are their own springs instead (`rows.solve`, bias C / h; warm-started by `common.warm_rows`;
     untouched by the relax sweeps), so a compliance means the same potential energy as in every other solver.
     Returns (v, lam)."""
     def colour(v, blk, rows):
@@ -48,14 +48,14 @@ def _sweep(topo, v, lam, fr, bias, mass_scale, impulse_scale, inv_h, spring=True
             isc = jnp.where(slack, 0, isc)
         step = ms * L.block_solve(topo, blk, f, rel + b) - isc * lam
         if g is not None:       # the relax sweeps leave compliant rows alone: their spring impulse is the solve's
-            own = row_solve(topo, blk, f, rel + f.C * inv_h, lam, g) if spring else jnp.zeros_like(step)
+            own = R.solve(topo, blk, f, rel + f.C * inv_h, lam, g) if spring else jnp.zeros_like(step)
             step = jnp.where(f.alpha > 0, own, step)
-        new = clamp_ropes(blk, lam + step)
+        new = R.accumulate(blk, lam, step)
         return R.apply(topo, blk, f, v, new - lam), new
 
     lam = list(lam)
     for c, (blk, f) in enumerate(zip(topo.blocks, fr)):
-        v, lam[c] = L.each_colour(blk, colour, v, (f, gamma(f, 1 / inv_h), lam[c]))
+        v, lam[c] = L.each_colour(blk, colour, v, (f, R.gamma(f, 1 / inv_h), lam[c]))
     return v, tuple(lam)
 
 
@@ -139,7 +139,7 @@ class SoftStep(Solver):
         v0, v = v, sys.apply_gravity(v, h)
         v_free = v
         fr = frames(sys, x)
-        lam = tuple(clamp_ropes(blk, warm_rows(f, l, h)) * (f.k > 0).astype(l.dtype)
+        lam = tuple(R.clamp(blk, warm_rows(f, l, h)) * (f.k > 0).astype(l.dtype)
                     for blk, f, l in zip(topo.blocks, fr, lam))
         v = apply_impulses(sys, v, fr, lam)
         obs = pairs = solve_obs = solve_pairs = None
