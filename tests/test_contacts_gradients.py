@@ -121,8 +121,10 @@ def test_contact_leaf_gradients_reverse_equals_forward_and_differences(name):
 # One scene each (every scene is covered with PGS above): reverse mode through their own contact code.
 @pytest.mark.parametrize("name, solver", [("falling_chain", jc.Jacobi(20)), ("drape", jc.XPBD(substeps=4)),
                                           ("drape", jc.SoftStep(substeps=2)),
-                                          ("falling_chain", jc.Penalty(stiffness=2e4, substeps=10))],
-                         ids=["Jacobi-falling_chain", "XPBD-drape", "SoftStep-drape", "Penalty-falling_chain"])
+                                          ("falling_chain", jc.Penalty(stiffness=2e4, substeps=10)),
+                                          ("falling_chain", jc.RATTLE())],
+                         ids=["Jacobi-falling_chain", "XPBD-drape", "SoftStep-drape", "Penalty-falling_chain",
+                              "RATTLE-falling_chain"])
 def test_other_solvers_contact_leaf_gradients_are_finite_in_float32(name, solver):
     loss, p = _problem(name, np.float32, solver)
     with warnings.catch_warnings():
@@ -137,8 +139,8 @@ BAD = [("friction", np.nan), ("friction", -0.5), ("restitution", np.nan), ("rest
 
 
 @pytest.mark.parametrize("solver", [jc.PGS(10), jc.Jacobi(20), jc.XPBD(substeps=4), jc.SoftStep(substeps=2),
-                                    jc.Penalty(stiffness=2e4, substeps=10)],
-                         ids=["PGS", "Jacobi", "XPBD", "SoftStep", "Penalty"])
+                                    jc.Penalty(stiffness=2e4, substeps=10), jc.RATTLE()],
+                         ids=["PGS", "Jacobi", "XPBD", "SoftStep", "Penalty", "RATTLE"])
 def test_bad_friction_or_restitution_under_jit_gives_nan_outputs(solver):
     """`Model` refuses these values when they are concrete; traced (an optimiser step with a NaN gradient), they
     used to give a finite trajectory (a NaN friction made PGS frictionless). Now the outputs are NaN."""

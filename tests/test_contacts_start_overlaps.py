@@ -27,6 +27,7 @@ SOLVERS = {
     "PGS-substeps": jc.PGS(10, substeps=4),          # the worst fling before: beta C / h with h = dt / 4
     "Jacobi": jc.Jacobi(20),
     "XPBD": jc.XPBD(substeps=4),
+    "RATTLE": jc.RATTLE(),
     "SoftStep": jc.SoftStep(substeps=4),
     "Penalty": jc.Penalty(stiffness=1e4, substeps=20),
 }

@@ -77,6 +77,12 @@ EXPECT = {
     ("SoftStep", "heavy_on_light_100"): (S, 1.0, 0.0, 1e-3),
     ("SoftStep", "break_16_dt_1_60"): (S, 0.02, 0.0, 1e-9, 1e-12, 1e-12),
     ("SoftStep", "drape_from_1m"): (S, 0.04, 0.1, 1e-3),
+    # RATTLE(10) at dt 1/60 (XPBD's contact rows in one step, no substeps): the 100:1 column sinks to 45% of a
+    # radius (ten SHAKE sweeps, as PGS's ten); the break holds to 0.6% of a diameter with no energy gain; the
+    # cloth diverges as RATTLE's long chains do without contacts (tests/test_hard_cases.py): rods at 69x.
+    ("RATTLE", "heavy_on_light_100"): (S, 0.6, 0.0, 1e-3),
+    ("RATTLE", "break_16_dt_1_60"): (S, 0.01, 0.0, 1e-9, 1e-12, 1e-12),
+    ("RATTLE", "drape_from_1m"): (D,),
 }
 
 

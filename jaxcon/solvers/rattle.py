@@ -1,6 +1,7 @@
 """RATTLE: velocity Verlet with position (SHAKE) and velocity constraints, solved by coloured sweeps."""
 from __future__ import annotations
 
+import functools
 import operator
 from typing import Any
 
@@ -12,7 +13,9 @@ from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
-from jaxcon.solvers.common import frames, shake_sweep
+from jaxcon.core.contact import zero_impulses
+from jaxcon.solvers import contact
+from jaxcon.solvers.common import frames, run_substeps, shake_sweep, with_contacts, with_found
 
 # A sweep loop is unrolled when it has at most _UNROLL_ITERATIONS iterations and iterations times the code blocks
 # one sweep emits (one per topology block: a colour each in the unrolled layout; a table, star or constraint set
@@ -51,6 +54,14 @@ class RATTLE(Solver):
     (a slack rope is free). The returned lam is the constraint impulse over the step (mu / h + the velocity
     stage's impulse; lam > 0: tension; a hanging mass gives m g h). The warm-start input is not used.
 
+    Contacts (`planes`, `spheres`, `collide`) are unilateral rows in both stages, as XPBD's (docs/contacts.md):
+    every SHAKE sweep ends with the contacts' position pass (`contact.position_pass`: overlaps pushed out along
+    the normal with lam_n >= 0, static friction), whose correction / h goes into v' as the constraints' does; the
+    velocity stage ends with their velocity pass (`contact.position_velocity_pass`: restitution from the
+    approach velocity v + h/2 g, dynamic friction). Contact impulses are not symmetric in time, so a model with
+    contacts loses RATTLE's time reversibility at every contact (not elsewhere). A neighbour grid's step searches
+    its pairs once (`common.grid_substepped`).
+
     Args:
       iterations: Gauss-Seidel sweeps per stage, static, >= 1.
       tolerance: residual below which a constraint is no longer updated, >= 0 (a leaf; 0: always update).
@@ -63,8 +74,17 @@ class RATTLE(Solver):
         check_int("RATTLE", "iterations", self.iterations, 1)
         check_scalar("RATTLE", "tolerance", self.tolerance, 0.0)
 
-    def _step(self, sys, x, v, lam, h):
-        topo = sys.topology
+    supports_contacts = True
+
+    def _step(self, sys, x, v, lam, dt):
+        if sys.contact is None:
+            return self._substep(sys, x, v, lam, dt)
+        return run_substeps(sys, functools.partial(self._substep, sys), 1, x, v, lam, dt)
+
+    def _substep(self, sys, x, v, lam, h, found=None):
+        """One step (module docstring); a grid model's `found` = (partners, overflow) from its search."""
+        topo, cs = sys.topology, sys.contact
+        partners = None if found is None else found[0]
         dtype = x.dtype
         tol = jnp.asarray(self.tolerance, dtype)
         tiny = jnp.finfo(dtype).tiny
@@ -73,11 +93,21 @@ class RATTLE(Solver):
 
         v, spring0 = _spring_kick(sys, fr0, v, h / 2)
         v = sys.apply_gravity(v, h / 2)
+        x0, v_approach = x, v
         x = x + h * v
 
         shake = shake_sweep(sys, fr0, h, tol)
+        if cs is None:
+            x, v, mu = lax.fori_loop(0, self.iterations, shake, (x, v, zero), unroll=_unroll(self.iterations, topo))
+        else:
+            def shake_contacts(i, carry):
+                x, v, mu, imp = carry
+                x, v, mu = shake(i, (x, v, mu))
+                p, imp = contact.position_pass(cs, sys.w, x0, x, imp, partners)
+                return p, v + (p - x) / h, mu, imp
 
-        x, v, mu = lax.fori_loop(0, self.iterations, shake, (x, v, zero), unroll=_unroll(self.iterations, topo))
+            carry = (x, v, zero, zero_impulses(topo, cs.ct, dtype))
+            x, v, mu, imp = lax.fori_loop(0, self.iterations, shake_contacts, carry)
 
         fr1 = frames(sys, x)
         v, spring1 = _spring_kick(sys, fr1, v, h / 2)
@@ -111,7 +141,11 @@ class RATTLE(Solver):
 
         v, lam2 = lax.fori_loop(0, self.iterations, project, (v, zero), unroll=_unroll(self.iterations, topo))
         lam = tuple(map(operator.add, (m / h for m in mu), lam2))
-        return x, v, tuple(l + s0 + s1 for l, s0, s1 in zip(lam, spring0, spring1))
+        lam = tuple(l + s0 + s1 for l, s0, s1 in zip(lam, spring0, spring1))
+        if cs is None:
+            return x, v, lam
+        v, imp = contact.position_velocity_pass(cs, sys.w, x, v_approach, v, imp, h, partners)
+        return x, v, with_contacts(sys, lam, with_found(imp, found))
 
 
 def _spring_kick(sys, fr, v, dt):
