@@ -139,7 +139,8 @@ def test_bad_max_neighbours_and_solvers_without_contacts():
         jc.rollout(model, state, jc.Direct(), 0.01, 2)
 
 
-@pytest.mark.parametrize("solver", [jc.PGS(4, substeps=2), jc.XPBD(2, substeps=4)], ids=["PGS", "XPBD"])
+@pytest.mark.parametrize("solver", [jc.PGS(4, substeps=2), jc.XPBD(2, substeps=4), jc.RATTLE(4)],
+                         ids=["PGS", "XPBD", "RATTLE"])
 def test_grid_gradients_equal_central_differences(solver):
     """d(final positions)/d(start velocity, radius) through a grid rollout with substeps (disc 0 hits the three
     others, which hit each other within the 12 steps; friction and restitution), against float64 central

@@ -36,8 +36,9 @@ def _check_impulses(traj, mu):
 @pytest.mark.parametrize("solver", SOLVERS, ids=lambda s: type(s).__name__)
 def test_dropped_ball_comes_to_rest_on_the_floor(solver):
     """Dropped from 0.4 m above the floor, 2 s. XPBD and RATTLE (the same contact rows at position level)
-    never let it below the floor and it rests exactly on it; Penalty rests at the spring's static sink m g / k and its deepest overlap during the impact stays below
-    the undamped u sqrt(m / k) (8.9 mm; 2.5 mm measured, critical damping at e = 0)."""
+    never let it below the floor and it rests exactly on it; Penalty rests at the spring's static sink m g / k
+    and its deepest overlap during the impact stays below the undamped u sqrt(m / k) (8.9 mm; 2.5 mm measured,
+    critical damping at e = 0)."""
     dt, k = 1 / 240, float(PENALTY.stiffness)
     model, state = _ball(0.5)
     final, traj = jc.rollout(model, state, solver, dt, 480)
@@ -324,8 +325,8 @@ def test_models_without_contacts_trace_no_contact_code(monkeypatch):
     monkeypatch.setattr(penalty_module, "_contact_impulses", boom)
     chain, chain_state = jc.scenes.chain(n_links=4)
     ball, ball_state = _ball(0.5)
-    # every solver that takes contacts (PGS plain and split, Jacobi, SoftStep, XPBD, Penalty); 3 steps: a call no
-    # other test makes, so it is traced, not cached
+    # every solver that takes contacts (PGS plain and split, Jacobi, SoftStep, XPBD, RATTLE, Penalty); 3 steps: a
+    # call no other test makes, so it is traced, not cached
     for solver in [jc.PGS(4), jc.PGS(4, stabilization="split"), jc.Jacobi(4), jc.SoftStep()] + SOLVERS:
         jax.make_jaxpr(lambda s, solver=solver: jc.rollout(chain, s, solver, 1 / 240, 3))(chain_state)
         with pytest.raises(AssertionError, match="contact code traced"):

@@ -141,11 +141,12 @@ def pair_index(ct: ContactTopology, pairs: Rows):
 
 # ---- how a sweep visits the contact rows (`layout.each_colour`) -------------------------------------------------
 # The contact rows come in three layouts, each a block whose colours `layout.each_colour` runs one after another
-# (`blocks`): obstacle q's rows (one per particle), a round of listed pairs (disjoint pairs), and a grid slot
-# (one row per particle, whose partners may repeat, so its rows share particles). A colour gives the update the
-# relative values of its rows' particles (`rel`, `both`) and writes an impulse back (`apply`); a slot also
-# splits masses between the rows it shares a particle with (`split_mass`). `rows` is a pair (data, multipliers):
-# a slot with no rows is skipped and keeps its multipliers (`lax.cond`: the same values and derivatives).
+# (`ObstacleBlock`, `pair_block`: `RoundBlock`, `SlotBlock`): obstacle q's rows (one per particle), a round of listed
+# pairs (disjoint pairs), and a grid slot (one row per particle, whose partners may repeat, so its rows share
+# particles). A colour gives the update the relative values of its rows' particles (`rel`, `both`) and writes an
+# impulse back (`apply`); a slot also splits masses between the rows it shares a particle with (`split_mass`). `rows`
+# is a pair (data, multipliers): a slot with no rows is skipped and keeps its multipliers (`lax.cond`: the same values
+# and derivatives).
 
 
 class Unilateral:
@@ -307,8 +308,8 @@ CONTACT_SLOP = 0.005
 
 
 #: The Baumgarte term of a touching contact pushes out only the overlap beyond PUSH_SLOPS slops, while the position
-#: pass projects onto one slop: the position pass removes overlap without making velocity, and what it leaves
-#: (within its stopping tolerance, `GRID_PASS_STOP`, or in a column too tall for its passes) is turned into
+#: pass projects onto one slop: the position pass removes overlap without making velocity, and what it leaves (within
+#: its stopping tolerance, `solvers.contact.GRID_PASS_STOP`, or in a column too tall for its passes) is turned into
 #: velocity only beyond PUSH_SLOPS. Both removing the same overlap kept piles moving (docs/contacts.md, piles at
 #: rest): beyond one slop the 1024-disc box moved at 1.1 m/s; beyond two the 4096-disc box still flowed at 2.3 m/s
 #: after 8 s, 97% of its discs faster than 0.05 m/s; beyond six it comes to rest (0.03 m/s at 8 s with 2 substeps).
@@ -447,7 +448,7 @@ def _first_impacts(ct, obs, pairs, n_particles, index=None):
 def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None, slop=0.0):
     """Contact rows at the start of a (sub)step: (obstacle Rows or None, pair Rows or None). `v0` is the
     velocity at the start of the step, `v` after the external forces and before any impulse. A grid model
-    passes its `partners` [n, K] (from `neighbours`). `slop`: the solver's contact slop, a fraction of the
+    passes its `partners` [n, K] (from `grid.neighbours`). `slop`: the solver's contact slop, a fraction of the
     contact distance (`CONTACT_SLOP`; 0: none)."""
     ct, dim = cs.ct, x.shape[0]
     xf, vf, v0f, wf = x.reshape(dim, -1), v.reshape(dim, -1), v0.reshape(dim, -1), w.reshape(-1)

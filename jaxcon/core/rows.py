@@ -162,10 +162,10 @@ def compliant(f) -> Optional[Array]:
 
 
 # ---- the velocity-level row update, one for every kind and every sequential-impulse solver --------------------
-# A colour's rows change their accumulated multipliers by `solve` (rhs: the rows' rel + bias) and are projected
-# by `accumulate` where unilateral: PGS's sweeps and implicit adjoint, Jacobi, SoftStep (which scales the change
-# by its softness), split impulses and RATTLE's velocity stage for the constraint rows, and the contact rows'
-# normal update (`solvers.contact`: rel = -vn, bias = the contact's target velocity) in all of them.
+# A colour's rows change their accumulated multipliers by `solve` (rhs: the rows' rel + bias): PGS's sweeps and
+# implicit adjoint, Jacobi, SoftStep (which scales the change by its softness) and the contact rows' normal update
+# (`solvers.contact`: rel = -vn, bias = the contact's target velocity). Every update, RATTLE's stages and the
+# position sweeps included, adds its change and projects unilateral rows through `accumulate`.
 
 
 def clamp(block, lam):

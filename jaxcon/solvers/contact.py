@@ -122,10 +122,10 @@ def finish_row(vrel, f: Rows, mu, ln, new_n, lt):
 def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impulses, soft=(None, None)):
     """One Gauss-Seidel pass over every contact: the obstacles' rows, then the pairs', each a block whose colours
     `layout.each_colour` runs in order (obstacle by obstacle; round by round, or a grid model's slot by slot:
-    `contact_rows.blocks`). Each colour's rows update together from the same v (`_solve_row`); a grid slot's
-    rows, which may share particles, are relaxed by mass splitting: each takes the effective mass
-    1 / (c_i w_i + c_j w_j), c the slot's rows that push at each particle (as `jacobi_pass` does). Returns
-    (v, imp); a model without contacts (`cs` None) returns them unchanged.
+    `contact_rows.ObstacleBlock`, `pair_block`). Each colour's rows update together from the same v
+    (`_solve_row`); a grid slot's rows, which may share particles, are relaxed by mass splitting: each takes the
+    effective mass 1 / (c_i w_i + c_j w_j), c the slot's rows that push at each particle (as `jacobi_pass`
+    does). Returns (v, imp); a model without contacts (`cs` None) returns them unchanged.
 
     `soft` = (obstacle softness, pair softness): SoftStep's (mass_scale, impulse_scale) per row
     (`soft_rows`), each None for rigid rows (`_solve_row`)."""
@@ -154,15 +154,6 @@ def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impuls
         vf, (pn, pt) = L.each_colour(block, colour(w.reshape(-1)), v.reshape(dim, -1), ((pairs, soft[1]), (pn, pt)))
         v = vf.reshape(shape)
     return v, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
-
-
-
-
-
-
-
-
-
 
 
 def _obstacle_frame(obs: Rows):
@@ -491,9 +482,6 @@ def position_pass(cs: ContactSystem, w, x, p, imp: Impulses, partners=None):
         pf, (pn, pt) = L.each_colour(pair_block(ct, partners), pair, p.reshape(dim, -1), (None, (pn, pt)))
         p = pf.reshape(shape)
     return p, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
-
-
-
 
 
 def position_velocity_pass(cs: ContactSystem, w, p, v_before, v, imp: Impulses, h, partners=None):
