@@ -18,6 +18,9 @@ from jaxcon.solvers import penalty as penalty_module
 G = 9.81
 PENALTY = jc.Penalty(stiffness=1e5, substeps=8)          # dt 1/240: h = 0.52 ms, its stability limit 2.6 ms
 SOLVERS = [jc.XPBD(), jc.RATTLE(), PENALTY]
+#: RATTLE's contacts are XPBD's rows at position level in its SHAKE stage and their velocity pass after its
+#: velocity stage, in one step of h: the tests of both run them against the same references.
+POSITION_LEVEL = [jc.XPBD(), jc.RATTLE()]
 
 
 def _ball(y0, *, v0=0.0, e=0.0, mu=0.0, r=0.1, threshold=0.0, gravity=None):
@@ -54,7 +57,7 @@ def test_dropped_ball_comes_to_rest_on_the_floor(solver):
     _check_impulses(traj, 0.0)
 
 
-@pytest.mark.parametrize("solver", [jc.XPBD(), jc.RATTLE()], ids=lambda s: type(s).__name__)
+@pytest.mark.parametrize("solver", POSITION_LEVEL, ids=lambda s: type(s).__name__)
 @pytest.mark.parametrize("mu, slides", [(0.3, True), (0.6, False)])
 def test_position_level_incline_slides_with_coulomb_acceleration_or_sticks(solver, mu, slides):
     """Static friction at position level, dynamic friction in the velocity pass (XPBD's substeps, RATTLE's
@@ -113,14 +116,16 @@ def _apex_ratios(traj, r, h0, count):
     return apex / np.concatenate([[h0], apex[:-1]])
 
 
-def test_xpbd_bounce_heights_follow_e_squared():
-    """e = 0.8, dt 1/1000, 10 substeps: each bounce reaches e^2 of the previous height to 0.2% (measured 0.08%;
-    0.6% with one substep: the impact is resolved at the end of its substep), never below the floor."""
+@pytest.mark.parametrize("solver", POSITION_LEVEL, ids=lambda s: type(s).__name__)
+def test_position_level_bounce_heights_follow_e_squared(solver):
+    """e = 0.8, dt 1/1000: each bounce reaches e^2 of the previous height, never below the floor. XPBD (10
+    substeps) to 0.2% (measured 0.08%; 0.6% with one substep: the impact is resolved at the end of its substep),
+    RATTLE (one step) to 0.5% (measured 0.4%)."""
     e, h0 = 0.8, 0.9
     model, state = _ball(h0 + 0.1, e=e, threshold=0.01)
-    _, traj = jc.rollout(model, state, jc.XPBD(), 1 / 1000, 2500)
+    _, traj = jc.rollout(model, state, solver, 1 / 1000, 2500)
     ratio = _apex_ratios(traj, 0.1, h0, 5)
-    assert np.abs(ratio / e ** 2 - 1).max() < 2e-3
+    assert np.abs(ratio / e ** 2 - 1).max() < (5e-3 if isinstance(solver, jc.RATTLE) else 2e-3)
     assert np.asarray(traj.x[:, 0, 1]).min() > 0.1 - 1e-12
 
 
@@ -137,32 +142,37 @@ def test_penalty_first_bounce_has_the_model_restitution(e):
     _check_impulses(traj, 0.0)
 
 
-def test_xpbd_head_on_elastic_collision_exchanges_velocities():
-    """Equal discs, e = 1: the velocities are exchanged (1e-12), and the positions are those of an impact at
-    the right time to within one substep's relative travel (there is no time-of-impact correction)."""
+@pytest.mark.parametrize("solver, position_tol", [(jc.XPBD(substeps=7), 3.0 * (1 / 60) / 7), (jc.RATTLE(), 1e-12)],
+                         ids=["XPBD", "RATTLE"])
+def test_position_level_head_on_elastic_collision_exchanges_velocities(solver, position_tol):
+    """Equal discs, e = 1, dt 1/60: the velocities are exchanged (1e-12), 3 N s of impulse, and the positions are
+    those of an impact at the right time: XPBD's to within one substep's relative travel (there is no
+    time-of-impact correction), RATTLE's to 1e-12 (measured 4e-16: its drift at the mean velocity puts them
+    there)."""
     x0 = np.array([[0.0, 0.0], [1.0, 0.0]])
     v0 = np.array([[2.0, 0.0], [-1.0, 0.0]])
     model, state = jc.build(x0, 1.0, velocities=v0, radius=0.1, collide=True, restitution=1.0,
                             restitution_threshold=0.0, gravity=np.zeros(2))
-    dt, substeps = 1 / 60, 7
-    final, traj = jc.rollout(model, state, jc.XPBD(substeps=substeps), dt, 30)
+    final, traj = jc.rollout(model, state, solver, 1 / 60, 30)
     np.testing.assert_allclose(np.asarray(final.v), v0[::-1], atol=1e-12)
     T, tc = 0.5, 0.8 / 3
     exact = np.array([2 * tc - (T - tc), 1 - tc + 2 * (T - tc)])
-    assert np.abs(np.asarray(final.x[:, 0]) - exact).max() <= 3.0 * dt / substeps
+    assert np.abs(np.asarray(final.x[:, 0]) - exact).max() <= position_tol
     assert np.sum(np.asarray(traj.contact_n)) == pytest.approx(3.0, rel=1e-12)        # m |dv| = 3 N s
 
 
-def test_xpbd_billiards_break_conserves_momentum_and_never_gains_energy():
-    """XPBD(substeps=20), dt 1/60, 2 s: momentum to 1e-11 until the first cushion contact (measured 1e-13), no
-    step gains kinetic energy (measured at most +9e-15 of the initial energy: roundoff), no two balls ever
-    overlap by 1% of a diameter (measured: they never overlap at a recorded step). The break itself is more
-    inelastic than PGS's: 45% of the kinetic energy is left after it (PGS: 89%), because a contact's
-    restitution acts on its own approach speed at the start of the substep, which is 0 for racked balls that
-    the impulse reaches within the same substep."""
+@pytest.mark.parametrize("solver, kept", [(jc.XPBD(substeps=20), (0.3, 0.6)), (jc.RATTLE(10), None)],
+                         ids=["XPBD", "RATTLE"])
+def test_position_level_billiards_break_conserves_momentum_and_never_gains_energy(solver, kept):
+    """dt 1/60, 2 s: momentum to 1e-11 until the first cushion contact (measured 1e-13 XPBD, 9e-14 RATTLE), no
+    step gains kinetic energy (measured at most +9e-15 XPBD, +3e-16 RATTLE of the initial energy: roundoff), no
+    two balls ever overlap by 1% of a diameter (measured: XPBD(substeps=20) never at a recorded step, RATTLE(10)
+    0.6%). XPBD's break is more inelastic than PGS's: 45% of the kinetic energy is left after it (PGS: 89%),
+    because a contact's restitution acts on its own approach speed at the start of the substep, which is 0 for
+    racked balls that the impulse reaches within the same substep."""
     model, state = jc.scenes.billiards()
     dt, R = 1 / 60, jc.scenes.BALL_RADIUS
-    _, traj = jc.rollout(model, state, jc.XPBD(substeps=20), dt, 120)
+    _, traj = jc.rollout(model, state, solver, dt, 120)
     x = np.concatenate([np.asarray(state.x)[None], np.asarray(traj.x)])
     v = np.concatenate([np.asarray(state.v)[None], np.asarray(traj.v)])
     n = model.n_particles
@@ -173,55 +183,11 @@ def test_xpbd_billiards_break_conserves_momentum_and_never_gains_energy():
     np.testing.assert_allclose(p[: first + 1], np.broadcast_to(p[0], p[: first + 1].shape), atol=1e-11)
     ke = 0.5 * jc.scenes.BALL_MASS * (v ** 2).sum((1, 2))
     assert np.diff(ke).max() <= 1e-12 * ke[0]
-    assert 0.3 < ke[10] / ke[0] < 0.6                       # after the break (documented above)
+    if kept is not None:
+        assert kept[0] < ke[10] / ke[0] < kept[1]            # after the break (documented above)
     d = np.linalg.norm(x[:, :, None] - x[:, None], axis=-1) + np.eye(n)
     assert (2 * R - d).max() < 0.01 * 2 * R
     assert np.all((x >= R - 1e-9) & (x <= np.array(jc.scenes.TABLE) - R + 1e-9))
-    _check_impulses(traj, 0.05)
-
-
-def test_rattle_bounces_exchanges_and_breaks_without_energy_gain():
-    """RATTLE's contacts (XPBD's rows at position level in its SHAKE stage, their velocity pass after its
-    velocity stage), on three references:
-
-    * a ball dropped with e = 0.8 at dt 1/1000: each bounce reaches e^2 of the previous height to 0.5% (measured
-      0.4%: the impact is resolved at the end of its step), never below the floor;
-    * equal discs meeting head on with e = 1: velocities exchanged to 1e-12, positions those of the exact
-      impact to 1e-12 (measured 4e-16: the drift at the mean velocity puts them there), 3 N s of impulse;
-    * the 15-ball break, RATTLE(10), dt 1/60, 2 s: momentum to 1e-11 until the first cushion contact (measured
-      9e-14), no step gains kinetic energy (measured +3e-16 of the initial energy), no overlap beyond 1% of a
-      diameter (measured 0.6%)."""
-    e, h0 = 0.8, 0.9
-    model, state = _ball(h0 + 0.1, e=e, threshold=0.01)
-    _, traj = jc.rollout(model, state, jc.RATTLE(), 1 / 1000, 2500)
-    ratio = _apex_ratios(traj, 0.1, h0, 5)
-    assert np.abs(ratio / e ** 2 - 1).max() < 5e-3
-    assert np.asarray(traj.x[:, 0, 1]).min() > 0.1 - 1e-12
-
-    x0 = np.array([[0.0, 0.0], [1.0, 0.0]])
-    v0 = np.array([[2.0, 0.0], [-1.0, 0.0]])
-    model, state = jc.build(x0, 1.0, velocities=v0, radius=0.1, collide=True, restitution=1.0,
-                            restitution_threshold=0.0, gravity=np.zeros(2))
-    final, traj = jc.rollout(model, state, jc.RATTLE(), 1 / 60, 30)
-    np.testing.assert_allclose(np.asarray(final.v), v0[::-1], atol=1e-12)
-    T, tc = 0.5, 0.8 / 3
-    np.testing.assert_allclose(np.asarray(final.x[:, 0]), [2 * tc - (T - tc), 1 - tc + 2 * (T - tc)], atol=1e-12)
-    assert np.sum(np.asarray(traj.contact_n)) == pytest.approx(3.0, rel=1e-12)
-
-    model, state = jc.scenes.billiards()
-    R = jc.scenes.BALL_RADIUS
-    _, traj = jc.rollout(model, state, jc.RATTLE(10), 1 / 60, 120)
-    x = np.concatenate([np.asarray(state.x)[None], np.asarray(traj.x)])
-    v = np.concatenate([np.asarray(state.v)[None], np.asarray(traj.v)])
-    n = model.n_particles
-    first = int(np.argmax(np.asarray(traj.contact_n)[:, : 4 * n].max(1) > 0))
-    assert 0 < first < 100
-    p = v.sum(1)
-    np.testing.assert_allclose(p[: first + 1], np.broadcast_to(p[0], p[: first + 1].shape), atol=1e-11)
-    ke = 0.5 * jc.scenes.BALL_MASS * (v ** 2).sum((1, 2))
-    assert np.diff(ke).max() <= 1e-12 * ke[0]
-    d = np.linalg.norm(x[:, :, None] - x[:, None], axis=-1) + np.eye(n)
-    assert (2 * R - d).max() < 0.01 * 2 * R
     _check_impulses(traj, 0.05)
 
 
