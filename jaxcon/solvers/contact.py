@@ -45,7 +45,6 @@ Array = Any
 #: it: with substeps, the passes' lifts kept a deep pile flowing, and one pass lets it rest (docs/contacts.md).
 GRID_OVERLAP_PASSES = 32
 
-
 #: A grid model's position passes stop after one that moved no particle by more than this fraction of the slop
 #: times the smallest radius (`project_overlaps`). Measured on the 1024-disc box (docs/contacts.md): 0.1 with
 #: the push-out beyond two slops (`PUSH_SLOPS`) rests by 5 s at 12 ms per step; 0.1 with the push-out beyond one

@@ -81,8 +81,6 @@ class RATTLE(Solver):
     supports_contacts = True
 
     def _step(self, sys, x, v, lam, dt):
-        if sys.contact is None:
-            return self._substep(sys, x, v, lam, dt)
         return run_substeps(sys, functools.partial(self._substep, sys), 1, x, v, lam, dt)
 
     def _substep(self, sys, x, v, lam, h, found=None):
@@ -101,17 +99,18 @@ class RATTLE(Solver):
         x = x + h * v
 
         shake = shake_sweep(sys, fr0, h, tol)
-        if cs is None:
-            x, v, mu = lax.fori_loop(0, self.iterations, shake, (x, v, zero), unroll=_unroll(self.iterations, topo))
-        else:
-            def shake_contacts(i, carry):
-                x, v, mu, imp = carry
-                x, v, mu = shake(i, (x, v, mu))
-                p, imp = contact.position_pass(cs, sys.w, x0, x, imp, partners)
-                return p, v + (p - x) / h, mu, imp
 
-            carry = (x, v, zero, zero_impulses(topo, cs.ct, dtype))
-            x, v, mu, imp = lax.fori_loop(0, self.iterations, shake_contacts, carry)
+        def shake_contacts(i, carry):           # the contacts' position pass after each SHAKE sweep
+            x, v, mu, imp = carry
+            x, v, mu = shake(i, (x, v, mu))
+            if cs is None:
+                return x, v, mu, imp
+            p, imp = contact.position_pass(cs, sys.w, x0, x, imp, partners)
+            return p, v + (p - x) / h, mu, imp
+
+        carry = (x, v, zero, None if cs is None else zero_impulses(topo, cs.ct, dtype))
+        unroll = cs is None and _unroll(self.iterations, topo)      # a sweep with contacts stays a loop
+        x, v, mu, imp = lax.fori_loop(0, self.iterations, shake_contacts, carry, unroll=unroll)
 
         fr1 = frames(sys, x)
         v, spring1 = _spring_kick(sys, fr1, v, h / 2)
