@@ -45,8 +45,6 @@ def _scenes():
 @pytest.mark.parametrize("solver", SOLVERS, ids=lambda s: type(s).__name__ + getattr(s, "stabilization", "")[:5])
 def test_batched_rollout_equals_vmap_of_rollout(solver):
     for name, (model, state) in _scenes():
-        if isinstance(solver, jc.Direct) and model.topology.has_ropes:
-            continue
         if name == "rope_chain" and not isinstance(solver, jc.PGS):    # the graph has a rope for the others
             continue
         states = _states(state, 5)

@@ -270,8 +270,8 @@ def test_models_without_contacts_trace_no_contact_code(monkeypatch):
 @pytest.mark.parametrize("solver", [jc.Direct(), jc.RATTLE(), jc.Jacobi(), jc.XPBD(), jc.SoftStep(),
                                     jc.Penalty(stiffness=1e4, substeps=8)], ids=lambda s: type(s).__name__)
 def test_solvers_without_contact_support_refuse_clearly(solver):
-    """Direct (one linear solve: no inequality rows, as for ropes) refuses contacts; so does any solver whose
-    `supports_contacts` is False. The others, RATTLE among them, must run a contact model."""
+    """Direct (one linear or complementarity solve, without friction or the contact stages) refuses contacts; so
+    does any solver whose `supports_contacts` is False. The others, RATTLE among them, must run a contact model."""
     model, state = _ball(0.5)
     if type(solver).__name__ == "Direct" or not solver.supports_contacts:
         with pytest.raises(ValueError, match="does not support contacts"):

@@ -45,8 +45,8 @@ def test_scenes_and_build_default_to_float64_under_x64():
 
 @pytest.mark.parametrize("solver", SOLVERS, ids=lambda s: type(s).__name__)
 def test_x64_without_dtype_is_float64_under_strict_promotion(solver):
-    """Rollout, step, diagnostics and a gradient, on a model from Python lists (rods and ropes; a chain for
-    Direct, which takes no ropes) and on a cloth (strided colour blocks)."""
+    """Rollout, step, diagnostics and a gradient, on a model from Python lists (rods and ropes; for Direct, a
+    chain, its tridiagonal path) and on a cloth (strided colour blocks)."""
     scenes = _scenes()
     first = "chain" if isinstance(solver, jc.Direct) else "build_lists"
     with jax.numpy_dtype_promotion("strict"):

@@ -66,7 +66,7 @@ def test_rattle_is_second_order_pgs_first_order():
 
 # ---- tension of a hanging mass ------------------------------------------------------------------------------
 @pytest.mark.parametrize("solver, kind", [
-    (jc.Direct(regularisation=0.0), "rod"),      # Direct takes no ropes (its error is tested below)
+    (jc.Direct(regularisation=0.0), "rod"), (jc.Direct(regularisation=0.0), "rope"),
     (jc.SoftStep(), "rod"), (jc.SoftStep(), "rope"), (jc.RATTLE(), "rod"), (jc.RATTLE(), "rope"),
 ], ids=repr)
 def test_hanging_mass_tension_is_mg(solver, kind):
@@ -79,21 +79,57 @@ def test_hanging_mass_tension_is_mg(solver, kind):
     np.testing.assert_allclose(np.asarray(final.x[1]), [0.0, -1.0 - sag], atol=1e-10)
 
 
-def test_direct_rejects_ropes():
-    model, state = jc.scenes.pendulum(kind="rope", dtype=np.float64)
-    with pytest.raises(ValueError, match="Direct.*ropes"):
-        jc.step(model, state, jc.Direct(), 0.01)
+def _slack_rope_chain(n):
+    """A chain of n - 1 ropes (rest 0.3 m) from a fixed particle, started crumpled (links 0.25 m, random masses
+    0.5 to 3 kg): links go slack and taut as it falls and swings."""
+    rng = np.random.default_rng(n)
+    x = np.cumsum(np.c_[np.r_[0, 0.25 * np.ones(n - 1)], np.r_[0, 0.1 * rng.standard_normal(n - 1)]], 0)
+    masses = np.r_[1.0, rng.uniform(0.5, 3, n - 1)]
+    return x, masses, [(k, k + 1) for k in range(n - 1)]
+
+
+@pytest.mark.parametrize("n", [7, 15])      # 6 ropes: dense (below 9 rows); 14 ropes: the tridiagonal path
+def test_direct_ropes_are_a_complementarity_solve(n):
+    """Direct with ropes solves the velocity-level complementarity problem that PGS iterates towards: on a rope
+    chain that goes slack and taut, its dense and tridiagonal paths agree, both equal a converged PGS (400 or
+    3000 iterations), some impulses are 0
+    and none negative; its gradients with respect to the rest lengths equal central differences."""
+    x, masses, ropes = _slack_rope_chain(n)
+    rest = 0.3 * np.ones(n - 1)
+    model, state = jc.build(x, masses, ropes=ropes, rest_lengths=rest, fixed=[0], dtype=np.float64)
+    out = {}
+    for name, s in [("auto", jc.Direct(regularisation=0.0)), ("dense", jc.Direct(regularisation=0.0, method="dense")),
+                    ("pgs", jc.PGS(400 if n < 10 else 3000))]:
+        _, tr = jc.rollout(model, state, s, 1 / 120, 240)
+        out[name] = tr
+    lam = np.asarray(out["auto"].lam)
+    assert lam.min() == 0 and 0.05 < (lam == 0).mean() < 0.5, (lam.min(), (lam == 0).mean())
+    np.testing.assert_allclose(out["auto"].x, out["dense"].x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out["dense"].x, out["pgs"].x, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(out["dense"].lam, out["pgs"].lam, rtol=0, atol=1e-9)
+
+    def loss(L):
+        mm, st = jc.build(x, masses, ropes=ropes, rest_lengths=L, fixed=[0], dtype=np.float64)
+        final, _ = jc.rollout(mm, st, jc.Direct(), 1 / 120, 60)
+        return jnp.sum(final.x[-1] ** 2) + jnp.sum(final.v ** 2)
+
+    g = np.asarray(jax.grad(loss)(jnp.asarray(rest)))
+    e, eye = 1e-6, np.eye(n - 1)
+    fd = np.array([(loss(rest + e * eye[k]) - loss(rest - e * eye[k])) / (2 * e) for k in range(n - 1)])
+    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
 
 
 def test_rope_goes_slack_under_upward_velocity():
     # A bob thrown upward on a rope is in free flight: zero impulse, parabola x = v t - g t^2 / 2.
     dt = 1 / 100
-    for solver in (jc.SoftStep(), jc.RATTLE()):
+    for solver in (jc.SoftStep(), jc.RATTLE(), jc.Direct()):
         model, state = jc.scenes.pendulum(1.0, 1.0, 0.0, kind="rope", dtype=np.float64)
         state = state.replace(v=state.v.at[1, 1].set(2.0))
         final, traj = jc.rollout(model, state, solver, dt, 10)
         np.testing.assert_array_equal(np.asarray(traj.lam), 0.0)
         assert float(final.x[1, 1]) > -1.0 + 0.1
+        if isinstance(solver, jc.Direct):     # one step of symplectic Euler per dt: x = sum_k dt (v0 - g k dt)
+            np.testing.assert_allclose(float(final.x[1, 1]), -1.0 + 10 * dt * 2.0 - G * dt * dt * 55, rtol=1e-12)
 
 
 # ---- Direct: the defining linear system, tridiagonal = dense ------------------------------------------------

@@ -8,6 +8,7 @@ from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 from jax.lax.linalg import tridiagonal_solve
 
 from jaxcon.core import layout as L
@@ -61,8 +62,15 @@ class Direct(Solver):
     small systems). Guards: a constraint with no defined direction (coincident particles) or no mobility
     (both particles fixed) gets an identity row and lam = 0; the diagonal is scaled by 1 + `regularisation`
     (at least 1e3 machine epsilons) so redundant constraints (a duplicated rod, cloth shear rods) stay
-    solvable. Ropes are not supported
-    (a unilateral constraint needs a complementarity solve): use PGS, SoftStep or RATTLE for ropes.
+    solvable.
+
+    Unilateral rows (ropes, a unilateral `jc.Constraint` set) make the solve a linear complementarity problem:
+    lam >= 0 on those rows, the residual A lam - b >= 0 where lam = 0, and one of the two zero on each. It is
+    solved exactly by block principal pivoting (Judice and Pires, with Murty's single pivots when the block
+    pivots stop making progress): each pivot is a solve of the same matrix restricted to the rows held active.
+    The pivoting runs without gradient; the impulses are the solve of the final active set, differentiated as
+    such (the active set is piecewise constant in the inputs). A slack unilateral row's bias is the speculative
+    C / h, as in `PGS`: it may close the gap within the (sub)step and no further.
 
     The warm-start input is not used (the solve is exact).
 
@@ -111,11 +119,6 @@ class Direct(Solver):
 
     def _step(self, sys, x, v, lam, dt):
         topo = sys.topology
-        if topo.has_ropes or any(info.unilateral for info in topo.sets):
-            raise ValueError(
-                "Direct: the model has ropes or unilateral constraints, which Direct does not take (an "
-                "inequality needs a complementarity solve); use jc.PGS, jc.SoftStep or jc.RATTLE"
-            )
         if topo.has_sets:
             return self._step_rows(sys, x, v, lam, dt)
         tri = self._use_tridiagonal(topo)
@@ -132,7 +135,7 @@ class Direct(Solver):
             v = sys.apply_gravity(v, h)
             xu, vu = L.particles_out(topo, x), L.particles_out(topo, v)  # [n, dim], user order
             solve = _chain_solve if tri else functools.partial(_dense_solve, topo=topo)
-            lam_u, dvs = solve(xu, vu, w, rest, beta / h, eps, slop=(share, h) if split else None)
+            lam_u, dvs = solve(xu, vu, w, rest, beta / h, eps, h, _unilateral(topo), slop=share if split else None)
             v = L.particles_in(topo, vu + dvs[0])
             move = v if not split else v + L.particles_in(topo, dvs[1] / h)    # split: the excess's correction
             return x + h * move, v, L.constraints_in(topo, lam_u)
@@ -186,7 +189,8 @@ def _user_sets(sys):
 
 def _rows_solve(xu, vu, w, rest, sets, topo, beta, h, eps, slop):
     """One dense solve over every row (rods and sets) of (J M^-1 J^T + Gamma) lam = J v + bias, Gamma =
-    alpha / h^2 on a set's compliant rows (their bias C / h; the others beta / h C). With split impulses' `slop`
+    alpha / h^2 on a set's compliant rows (their bias C / h; the others beta / h C; a slack unilateral row C / h),
+    a complementarity solve where some rows are unilateral (`_complementarity`). With split impulses' `slop`
     (the share), a rod's C beyond its adaptive slop (`_rhs`) moves to a second right-hand side, h beta / h C, the
     position correction; a set's rows have no length scale and keep Baumgarte's bias. Returns (lam [m] user
     order, velocity changes as `_dense_solve`)."""
@@ -201,6 +205,9 @@ def _rows_solve(xu, vu, w, rest, sets, topo, beta, h, eps, slop):
     A = jnp.where(ok[:, None] & ok[None, :], A, 0) + jnp.diag(jnp.where(ok, eps * diag + g, 1))
     rel = -(J @ vu.reshape(-1))
     corr = jnp.where(alpha > 0, C / h, beta / h * C)
+    uni = _unilateral(topo)
+    slack = np.zeros(C.shape, bool) if uni is None else jnp.asarray(uni) & (C < 0)
+    corr = jnp.where(slack, C / h, corr)
     if slop is None:
         cols = [rel + corr]
     else:
@@ -213,10 +220,90 @@ def _rows_solve(xu, vu, w, rest, sets, topo, beta, h, eps, slop):
             steady = h * h * jnp.sum(ut * ut, -1) * L.safe_reciprocal(dist * jnp.maximum(beta, 1e-3))
             rod_in = jnp.abs(C[:mp]) <= jnp.clip(steady, slop * rest, 0.1 * rest)
             inside = inside.at[:mp].set(rod_in)
+        inside = inside | slack
         cols = [rel + jnp.where(inside, corr, 0), h * jnp.where(inside, 0, corr)]
-    lams = jnp.linalg.solve(A, jnp.stack([jnp.where(ok, c, 0) for c in cols], -1))
+    lams = _complementarity(_dense_on, jnp.matmul, A, [jnp.where(ok, c, 0) for c in cols], uni)
     changes = tuple((J.T @ lams[:, c]).reshape(n, dim) * w[:, None] for c in range(lams.shape[1]))
     return lams[:, 0], changes
+
+
+def _unilateral(topo):
+    """bool [m] in user order: the unilateral rows (ropes, then each unilateral set's rows), or None if none."""
+    uni = np.concatenate([topo.is_rope] + [np.full(len(s.particles), s.unilateral) for s in topo.sets])
+    return uni if uni.any() else None
+
+
+def _dense_on(A, act, b):
+    """Solve the dense system A lam = b restricted to the rows `act` (lam = 0 on the others)."""
+    if act is None:
+        return jnp.linalg.solve(A, b)
+    A = jnp.where(act[:, None] & act[None, :], A, 0) + jnp.diag(jnp.where(act, 0, 1).astype(A.dtype))
+    return jnp.linalg.solve(A, jnp.where(act, b, 0))
+
+
+def _tridiagonal_on(A, act, b):
+    """`_dense_on` for a tridiagonal A = (dl, d, du) (`lax.linalg.tridiagonal_solve`'s bands)."""
+    dl, d, du = A
+    if act is not None:
+        up, down = jnp.roll(act, -1), jnp.roll(act, 1)
+        dl, d, du = jnp.where(act & down, dl, 0), jnp.where(act, d, 1), jnp.where(act & up, du, 0)
+        b = jnp.where(act, b, 0)
+    return tridiagonal_solve(dl, d, du, b[:, None])[:, 0]
+
+
+def _tridiagonal_mul(A, lam):
+    dl, d, du = A
+    zero = jnp.zeros((1,), lam.dtype)
+    return d * lam + dl * jnp.concatenate([zero, lam[:-1]]) + du * jnp.concatenate([lam[1:], zero])
+
+
+def _complementarity(solve_on, mul, A, cols, uni):
+    """lam [m, len(cols)]: per right-hand side b in `cols`, the solution of A lam = b where no row is unilateral
+    (`uni` None), else of the linear complementarity problem on the unilateral rows: lam >= 0, r = A lam - b
+    >= 0 and lam r = 0 there, A lam = b on the others. `solve_on(A, act, b)` solves on the rows `act` with
+    lam = 0 elsewhere; `mul(A, lam)` is A lam.
+
+    Block principal pivoting (Judice and Pires 1994): start with every row active, and swap every infeasible
+    unilateral row (an active one with lam < 0, an inactive one with r < 0) at once while that lowers the count of
+    infeasible rows, or did within the last 3 pivots; otherwise swap only the infeasible row of largest index
+    (Murty's rule, finite for the P-matrix A is: symmetric positive definite with its regularisation). The
+    pivoting carries no gradient; the returned lam solves the final active set, differentiably."""
+    if uni is None:
+        return jnp.stack([solve_on(A, None, b) for b in cols], -1)
+    limit = 4 * int(np.sum(uni)) + 8                  # pivots at most (uni: static)
+    uni = jnp.asarray(uni)
+    m = uni.shape[0]
+    As = jax.tree.map(lax.stop_gradient, A)
+
+    def infeasible(act, b):
+        lam = solve_on(As, act, b)
+        r = mul(As, lam) - b
+        eps = 1e3 * jnp.finfo(b.dtype).eps
+        big = jnp.max(jnp.abs(b)) + jnp.max(jnp.abs(r))
+        tiny = jnp.finfo(b.dtype).tiny
+        return uni & jnp.where(act, lam < -eps * jnp.maximum(jnp.max(jnp.abs(lam)), tiny), r < -eps * (big + tiny))
+
+    def active(b):
+        b = lax.stop_gradient(b)
+
+        def pivot(carry):
+            it, act, bad, best, grace = carry
+            count = jnp.sum(bad)
+            block = (count < best) | (grace > 0)
+            last = jnp.arange(m) == jnp.max(jnp.where(bad, jnp.arange(m), -1))
+            act = act ^ jnp.where(block, bad, last)
+            grace = jnp.where(count < best, 3, grace - 1)
+            return it + 1, act, infeasible(act, b), jnp.minimum(best, count), grace
+
+        act = jnp.ones(m, bool)
+        carry = (0, act, infeasible(act, b), m + 1, 3)
+        return lax.while_loop(lambda c: (c[0] < limit) & jnp.any(c[2]), pivot, carry)[1]
+
+    lams = []
+    for b in cols:
+        lam = solve_on(A, active(b), b)
+        lams.append(jnp.where(uni, jnp.maximum(lam, 0), lam))
+    return jnp.stack(lams, -1)
 
 
 def _all_rows(xu, rest, sets, topo, values=False):
@@ -266,12 +353,12 @@ def _coupling(topo):
     return tuple(np.concatenate(x) for x in (a, b, p, s))
 
 
-def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, slop=None):
-    """One dense solve of J W J^T lam = b. The matrix is assembled entry by entry from the pairs of
-    constraints that share a particle (O(sum of squared degrees), not O(m^2 n)); the solve is O(m^3).
-    Returns (lam, velocity changes): one change (-W J^T lam) for Baumgarte, or, with split impulses' `slop`, the
-    velocity change (the bias of C clipped to the slop) and the correction of the rest (a position change),
-    from one solve with two right-hand sides (`_rhs`)."""
+def _dense_solve(xu, vu, w, rest, rate, eps, h, uni, *, topo, slop=None):
+    """One dense solve of J W J^T lam = b (a complementarity solve where `uni` marks unilateral rows). The matrix
+    is assembled entry by entry from the pairs of constraints that share a particle (O(sum of squared degrees),
+    not O(m^2 n)); the solve is O(m^3). Returns (lam, velocity changes): one change (-W J^T lam) for Baumgarte,
+    or, with split impulses' `slop`, the velocity change (the bias of C clipped to the slop) and the correction of
+    the rest (a position change), each its own right-hand side (`_rhs`)."""
     i, j, m = topo.i, topo.j, topo.m
     dist, nrm = L.safe_norm(xu[j] - xu[i], axis=-1)          # [m], [m, dim]
     ok = ((w[i] + w[j]) > 0) & (dist > 0)
@@ -281,7 +368,8 @@ def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, slop=None):
     both = ok[:, None] & ok[None, :]
     diag = jnp.diagonal(A)
     A = jnp.where(both, A, 0) + jnp.diag(jnp.where(ok, eps * diag, 1))
-    lams = jnp.linalg.solve(A, _rhs(ok, nrm, vu[j] - vu[i], dist - rest, rest, rate, slop))     # [m, 1 or 2]
+    cols = _rhs(ok, nrm, vu[j] - vu[i], dist - rest, rest, rate, h, uni, slop)
+    lams = _complementarity(_dense_on, jnp.matmul, A, cols, uni)               # [m, 1 or 2]
 
     def change(lam):
         p = nrm * lam[:, None]                                   # J^T lam: -p at i, +p at j
@@ -290,26 +378,28 @@ def _dense_solve(xu, vu, w, rest, rate, eps, *, topo, slop=None):
     return lams[:, 0], tuple(change(lams[:, c]) for c in range(lams.shape[1]))
 
 
-def _rhs(ok, nrm, u, C, rest, rate, slop):
-    """[m, 1] right-hand side J v + rate C (u: the relative velocities [m, dim]; rate = beta / h), or with split
-    impulses' `slop` = (share, h) [m, 2]: J v + rate C where |C| is within each rod's slop (as
+def _rhs(ok, nrm, u, C, rest, rate, h, uni, slop):
+    """The right-hand sides [[m]]: J v + rate C (u: the relative velocities [m, dim]; rate = beta / h), or with
+    split impulses' `slop` (the share) two: J v + rate C where |C| is within each rod's slop (as
     `common.split_slop`: twice its rotation's steady Baumgarte error, at least share L, at most L / 10), and
     beta C where it is beyond (a position change: the exact linear correction, at Baumgarte's rate, gentler
-    where J M^-1 J^T is nearly singular, as on a cloth with shear rods)."""
+    where J M^-1 J^T is nearly singular, as on a cloth with shear rods). A slack rope (`uni`, C < 0) has the
+    speculative bias C / h and no position change."""
     rel = jnp.sum(u * nrm, -1)
+    slack = np.zeros(C.shape, bool) if uni is None else jnp.asarray(uni) & (C < 0)
+    bias = jnp.where(slack, C / h, rate * C)
     if slop is None:
-        cols = [rel + rate * C]
+        cols = [rel + bias]
     else:
-        share, h = slop
         ut = u - nrm * jnp.sum(u * nrm, -1, keepdims=True)
         dist = C + rest
         steady = h * jnp.sum(ut * ut, -1) * L.safe_reciprocal(dist * jnp.maximum(rate, 1e-3 / h))
-        inside = jnp.abs(C) <= jnp.clip(steady, share * rest, 0.1 * rest)
-        cols = [rel + rate * jnp.where(inside, C, 0), h * rate * jnp.where(inside, 0, C)]
-    return jnp.stack([jnp.where(ok, c, 0) for c in cols], -1)
+        inside = (jnp.abs(C) <= jnp.clip(steady, slop * rest, 0.1 * rest)) | slack
+        cols = [rel + jnp.where(inside, bias, 0), h * rate * jnp.where(inside, 0, C)]
+    return [jnp.where(ok, c, 0) for c in cols]
 
 
-def _chain_solve(xu, vu, w, rest, rate, eps, *, slop=None):
+def _chain_solve(xu, vu, w, rest, rate, eps, h, uni, *, slop=None):
     """`_dense_solve` for a simple chain, in O(n) (tridiagonal)."""
     # Constraint k joins particle k and k+1; n_k points from k to k+1 (lam is orientation-independent).
     dist, nrm = L.safe_norm(xu[1:] - xu[:-1], axis=-1)        # [m], [m, dim]
@@ -318,10 +408,9 @@ def _chain_solve(xu, vu, w, rest, rate, eps, *, slop=None):
     off = -w[1:-1] * jnp.sum(nrm[:-1] * nrm[1:], -1)          # A[k, k+1] = A[k+1, k]
     off = jnp.where(ok[:-1] & ok[1:], off, 0)
     zero = jnp.zeros((1,), xu.dtype)
-    dl = jnp.concatenate([zero, off])
-    du = jnp.concatenate([off, zero])
-    d = jnp.where(ok, diag * (1 + eps), 1)
-    lams = tridiagonal_solve(dl, d, du, _rhs(ok, nrm, vu[1:] - vu[:-1], dist - rest, rest, rate, slop))
+    bands = (jnp.concatenate([zero, off]), jnp.where(ok, diag * (1 + eps), 1), jnp.concatenate([off, zero]))
+    cols = _rhs(ok, nrm, vu[1:] - vu[:-1], dist - rest, rest, rate, h, uni, slop)
+    lams = _complementarity(_tridiagonal_on, _tridiagonal_mul, bands, cols, uni)
 
     def change(lam):
         p = nrm * lam[:, None]                                     # [m, dim]
