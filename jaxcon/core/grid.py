@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
@@ -94,20 +95,27 @@ def _scan(ct: ContactTopology, xf, reach):
     key = _cell_hash(c, table)
     order = jnp.argsort(key)
     count = jnp.zeros((table,), jnp.int32).at[key].add(1)
-    start = jnp.cumsum(count) - count                 # each bucket's first position in the sorted order
+    # each bucket's first position in the sorted order (a scatter-min: XLA CPU's cumsum of the counts is a
+    # reduce-window as long as the table, 0.13 ms at 8192 buckets)
+    start = jnp.full((table,), n, jnp.int32).at[key[order]].min(jnp.arange(n, dtype=jnp.int32))
+    # A bucket's entries are consecutive in the sorted order: each particle reads `scan` of them as one slice
+    # (a gather of windows, not of scan single entries), from the sorted indices and cell coordinates padded
+    # with `scan` entries past the end (an empty bucket starts at n).
+    sorted_j = jnp.concatenate([order.astype(jnp.int32), jnp.full((scan,), -1, jnp.int32)])
+    sorted_c = jnp.concatenate([c[:, order], jnp.zeros((dim, scan), jnp.int32)], 1)
+    window = jax.vmap(lambda lo: (lax.dynamic_slice(sorted_j, (lo,), (scan,)),
+                                  lax.dynamic_slice(sorted_c, (jnp.zeros_like(lo), lo), (dim, scan))))
     # one offset at a time: gathering every surrounding cell at once ([3^dim, n, scan]) cut a grid gradient's
     # program by a fifth but ran the search 1.4x (1024 discs) to 2x (4096) slower, measured 2026-11-25
     cands, missed = [], jnp.zeros((n,), jnp.int32)
     for off in itertools.product((-1, 0, 1), repeat=dim):
         qc = c + jnp.asarray(off, jnp.int32)[:, None]
         qk = _cell_hash(qc, table)
-        lo = start[qk]
-        hi = lo + count[qk]
-        idx = lo[:, None] + jnp.arange(scan)[None]                   # [n, scan] positions in the sorted order
-        j = order[jnp.minimum(idx, n - 1)]
-        ok = (idx < hi[:, None]) & jnp.all(c[:, j] == qc[:, :, None], axis=0)
+        j, cj = window(start[qk])                                    # [n, scan], [n, dim, scan]
+        size = count[qk]
+        ok = (jnp.arange(scan)[None] < size[:, None]) & jnp.all(cj == qc.T[:, :, None], axis=1)
         cands.append(jnp.where(ok, j, -1))
-        missed = missed + jnp.maximum(hi - lo - scan, 0).astype(jnp.int32)
+        missed = missed + jnp.maximum(size - scan, 0).astype(jnp.int32)
     return jnp.concatenate(cands, 1), missed, reach
 
 
@@ -123,12 +131,28 @@ def _select(cs: ContactSystem, scan, close):
     jc = jnp.maximum(j, 0)
     keep = (j >= 0) & (uid[jc] > uid[:, None]) & close(jc)
     keep = keep & ~jnp.any(jc[:, :, None] == excl[:, None, :], axis=-1)
-    rank = jnp.cumsum(keep, axis=1) - 1
+    rank = _rank(keep)
     count = jnp.sum(keep, axis=1)
     slot = jnp.where(keep & (rank < K), rank, K)
     out = jnp.full((n, K + 1), -1, jnp.int32).at[jnp.arange(n)[:, None], slot].set(j.astype(jnp.int32))
     overflow = jnp.sum(jnp.maximum(count - K, 0) + missed).astype(jnp.int32)
     return out[:, :K], overflow
+
+
+def _rank(keep):
+    """How many entries of each row of keep [n, M] (bool) are True before each entry: [n, M] int32, what
+    `cumsum(keep, 1) - keep` gives. XLA CPU computes a cumsum along an axis as a reduce-window as long as the
+    axis (0.7 ms for the 1024-disc box's [1024, 144] candidates); here the rows are packed into 32-bit words
+    and counted with popcounts, elementwise (0.18 ms)."""
+    n, M = keep.shape
+    W = -(-M // 32)
+    bits = jnp.pad(keep, ((0, 0), (0, W * 32 - M))).reshape(n, W, 32).astype(jnp.uint32)
+    shift = jnp.arange(32, dtype=jnp.uint32)
+    words = jnp.sum(bits << shift, axis=-1, dtype=jnp.uint32)            # the bits are distinct: a sum is an or
+    per_word = lax.population_count(words).astype(jnp.int32)
+    before = jnp.cumsum(per_word, axis=1) - per_word                       # W is small (5 in 2-D, 14 in 3-D)
+    within = lax.population_count(words[:, :, None] & ((jnp.uint32(1) << shift) - jnp.uint32(1)))
+    return (before[:, :, None] + within.astype(jnp.int32)).reshape(n, W * 32)[:, :M]
 
 
 def path_search(cs: ContactSystem, x, x_end, h, scan, margin=None):
@@ -162,7 +186,7 @@ def merge_partners(a, b):
     n, K = a.shape
     both = jnp.concatenate([a, jnp.where(jnp.any(b[:, :, None] == a[:, None, :], -1), -1, b)], 1)
     keep = both >= 0
-    rank = jnp.cumsum(keep, axis=1) - 1
+    rank = _rank(keep)
     slot = jnp.where(keep & (rank < K), rank, K)
     out = jnp.full((n, K + 1), -1, jnp.int32).at[jnp.arange(n)[:, None], slot].set(both)
     return out[:, :K], jnp.sum(jnp.maximum(jnp.sum(keep, 1) - K, 0)).astype(jnp.int32)
