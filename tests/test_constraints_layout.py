@@ -62,6 +62,27 @@ def test_a_cloth_of_user_distances_on_boxes_equals_the_rods(solver):
     assert float(jnp.abs(ta.x[-1] - x).max()) > 0.05                      # it moved
 
 
+def test_user_distances_on_an_even_grid_take_the_parity_split():
+    """An 8x8 cloth's edges as a user distance set on its grid: its column-parity colours step by 2 along the last
+    axis, so the set's model stores each grid row evens first (`Topology._split_for_sets`, as rods get it), every
+    colour stays a box, and the trajectory and impulses equal the built-in rods' with that colouring."""
+    n = 8
+    pairs, x = _cloth_pairs(n, np.random.default_rng(1))
+    rest = 0.98 * np.linalg.norm(x[pairs[:, 1]] - x[pairs[:, 0]], axis=-1)
+    m_set, s_set = jc.build(x, 0.5 / n ** 2, constraints=[jc.Constraint(_distance, pairs, {"L": rest})],
+                            fixed=[0, n - 1], grid_shape=(n, n), layout="unrolled")
+    t = m_set.topology
+    assert t.order is not None and all(b.unrolled.boxes is not None for b in t.blocks)
+    assert all(box[1][-1] == 1 for b in t.blocks for box in b.unrolled.boxes)       # unit steps along rows
+    m_rod, s_rod = jc.build(x, 0.5 / n ** 2, rods=pairs, fixed=[0, n - 1], grid_shape=(n, n), layout="unrolled",
+                            colouring=_colour_of(m_set))
+    m_rod = m_rod.replace(rest_length=jnp.asarray(rest))
+    _, ta = jc.rollout(m_rod, s_rod, jc.PGS(8), 1 / 120, 30)
+    _, tb = jc.rollout(m_set, s_set, jc.PGS(8), 1 / 120, 30)
+    np.testing.assert_allclose(np.asarray(tb.x), np.asarray(ta.x), atol=1e-11)
+    np.testing.assert_allclose(np.asarray(tb.lam), np.asarray(ta.lam), atol=1e-10 * float(jnp.abs(ta.lam).max()))
+
+
 def _graph(n=20, draws=36, seed=1):
     """A random graph of distances on n particles in 2-D (no grid), rest lengths 10% short, varied masses."""
     rng = np.random.default_rng(seed)

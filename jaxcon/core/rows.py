@@ -143,7 +143,7 @@ def set_frame(topo, block, con, ssys: SetSystem, x, w) -> SetFrame:
 def rel(topo, block, f, v):
     """The rate of the rows' C_lib at velocities v [dim, *view] (module docstring)."""
     if getattr(block, "generic", None) is not None:
-        return -jnp.sum(f.J * L.gather_rows(topo, block, v), axis=(0, 1))
+        return -L.dot_rows(topo, block, f.J, v)
     vi, vj = L.gather_pair(topo, block, v)
     return L.dot(block, vj - vi, f.n)
 
