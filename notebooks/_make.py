@@ -33,7 +33,7 @@ print(f"jaxcon {jc.__version__}, jax {host['jax']} on {host['platform']} ({host[
 
 NB01 = [
     ("md", "# 01 - Constraints: stiff springs vs multipliers\n\nA pendulum and a rope solved by stiff springs "
-           "(`jc.Penalty`) and by Lagrange multipliers (`jc.PGS`, and `jc.Direct` where available). The "
+           "(`jc.Penalty`) and by Lagrange multipliers (`jc.PGS`, and `jc.Direct`, whose solve takes a rope's inequality as a complementarity problem). The "
            "multiplier is the constraint impulse over a step: `lam / dt` is the rod tension in newtons "
            "(> 0 pulls)."),
     ("code", SETUP),
@@ -47,8 +47,7 @@ def solvers_for(model):
     sub = int(np.ceil(dt / (0.5 * pen.stability_limit(model))))
     out = {f"Penalty k=1e4 ({sub} substeps)": jc.Penalty(stiffness=1e4, damping=5.0, substeps=sub),
            "PGS 1 it": jc.PGS(iterations=1), "PGS 5 it": jc.PGS(iterations=5), "PGS 20 it": jc.PGS(iterations=20)}
-    if hasattr(jc, "Direct") and not model.topology.has_ropes:   # Direct takes rods only
-        out["Direct"] = jc.Direct()
+    out["Direct"] = jc.Direct()
     return out'''),
     ("md", "## Pendulum (rod) and rope: length error over time"),
     ("code", '''fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
