@@ -119,6 +119,25 @@ def test_direct_ropes_are_a_complementarity_solve(n):
     np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
 
 
+def test_direct_ropes_do_not_stretch_beside_a_row_of_large_values():
+    """Direct's pivoting judges each row by the size of its own terms: in float32, a ball on a user floor written
+    C = k (y + 3) >= 0 with k = 1e4 (a row of large values, unrelated to the ropes) leaves the rope chain's motion
+    as with k = 1. With one tolerance for the whole model (1e3 eps times the largest |b|), the ropes stretched to
+    their whole rest length (found by a review)."""
+    x, masses, ropes = _slack_rope_chain(7)
+    out = []
+    for k in (1.0, 1e4):
+        floor = jc.Constraint(lambda x, p: p["k"] * (x[0, 1] + 3.0), [[7]], {"k": [k]}, unilateral=True, name="floor")
+        model, state = jc.build(np.vstack([x, [[5.0, -2.9]]]), np.r_[masses, 1.0], ropes=ropes, fixed=[0],
+                                rest_lengths=0.3 * np.ones(6), constraints=[floor], dtype=np.float32)
+        _, tr = jc.rollout(model, state, jc.Direct(), 1 / 120, 120)
+        out.append(np.asarray(tr.x))
+        stretch = np.linalg.norm(np.diff(out[-1][:, :7], axis=1), axis=-1) - 0.3
+        assert stretch.max() < 0.02, (k, stretch.max())
+        assert np.all(out[-1][:, 7, 1] > -3.0 - 1e-3)                       # the ball rests on its floor
+    np.testing.assert_allclose(out[1], out[0], atol=1e-5)
+
+
 def test_rope_goes_slack_under_upward_velocity():
     # A bob thrown upward on a rope is in free flight: zero impulse, parabola x = v t - g t^2 / 2.
     dt = 1 / 100

@@ -70,7 +70,11 @@ class Direct(Solver):
     pivots stop making progress): each pivot is a solve of the same matrix restricted to the rows held active.
     The pivoting runs without gradient; the impulses are the solve of the final active set, differentiated as
     such (the active set is piecewise constant in the inputs). A slack unilateral row's bias is the speculative
-    C / h, as in `PGS`: it may close the gap within the (sub)step and no further.
+    C / h, as in `PGS`: it may close the gap within the (sub)step and no further. Cost: at least two solves per
+    right-hand side (the pivoting's first, and the final differentiable one), one more per pivot; under `vmap`
+    every element takes the slowest one's pivots. At most 4 u + 8 pivots (u unilateral rows): a review's random
+    complementarity problems of up to 250 rows (condition numbers to 1e8) took at most 69; were the limit
+    reached, the last active set's solve would be used, clamped to lam >= 0, with no report.
 
     The warm-start input is not used (the solve is exact).
 
@@ -222,7 +226,7 @@ def _rows_solve(xu, vu, w, rest, sets, topo, beta, h, eps, slop):
             inside = inside.at[:mp].set(rod_in)
         inside = inside | slack
         cols = [rel + jnp.where(inside, corr, 0), h * jnp.where(inside, 0, corr)]
-    lams = _complementarity(_dense_on, jnp.matmul, A, [jnp.where(ok, c, 0) for c in cols], uni)
+    lams = _complementarity(_dense_on, jnp.matmul, jnp.diagonal, A, [jnp.where(ok, c, 0) for c in cols], uni)
     changes = tuple((J.T @ lams[:, c]).reshape(n, dim) * w[:, None] for c in range(lams.shape[1]))
     return lams[:, 0], changes
 
@@ -257,11 +261,12 @@ def _tridiagonal_mul(A, lam):
     return d * lam + dl * jnp.concatenate([zero, lam[:-1]]) + du * jnp.concatenate([lam[1:], zero])
 
 
-def _complementarity(solve_on, mul, A, cols, uni):
+def _complementarity(solve_on, mul, diag, A, cols, uni):
     """lam [m, len(cols)]: per right-hand side b in `cols`, the solution of A lam = b where no row is unilateral
     (`uni` None), else of the linear complementarity problem on the unilateral rows: lam >= 0, r = A lam - b
     >= 0 and lam r = 0 there, A lam = b on the others. `solve_on(A, act, b)` solves on the rows `act` with
-    lam = 0 elsewhere; `mul(A, lam)` is A lam.
+    lam = 0 elsewhere; `mul(A, lam)` is A lam; `diag(A)` is A's diagonal. A row counts as infeasible when its lam
+    or residual is negative beyond 1e3 machine epsilons of its own terms' size.
 
     Block principal pivoting (Judice and Pires 1994): start with every row active, and swap every infeasible
     unilateral row (an active one with lam < 0, an inactive one with r < 0) at once while that lowers the count of
@@ -275,13 +280,16 @@ def _complementarity(solve_on, mul, A, cols, uni):
     m = uni.shape[0]
     As = jax.tree.map(lax.stop_gradient, A)
 
+    absA = jax.tree.map(jnp.abs, As)
+    eps, tiny = 1e3 * jnp.finfo(cols[0].dtype).eps, jnp.finfo(cols[0].dtype).tiny
+
     def infeasible(act, b):
         lam = solve_on(As, act, b)
         r = mul(As, lam) - b
-        eps = 1e3 * jnp.finfo(b.dtype).eps
-        big = jnp.max(jnp.abs(b)) + jnp.max(jnp.abs(r))
-        tiny = jnp.finfo(b.dtype).tiny
-        return uni & jnp.where(act, lam < -eps * jnp.maximum(jnp.max(jnp.abs(lam)), tiny), r < -eps * (big + tiny))
+        # per row, against the size of the terms the row's residual sums (|b| + |A| |lam|): one scale for the
+        # whole model let a float32 rope stretch to its whole length beside an unrelated row of large values
+        scale = jnp.abs(b) + mul(absA, jnp.abs(lam)) + tiny
+        return uni & jnp.where(act, lam * diag(absA) < -eps * scale, r < -eps * scale)
 
     def active(b):
         b = lax.stop_gradient(b)
@@ -369,7 +377,7 @@ def _dense_solve(xu, vu, w, rest, rate, eps, h, uni, *, topo, slop=None):
     diag = jnp.diagonal(A)
     A = jnp.where(both, A, 0) + jnp.diag(jnp.where(ok, eps * diag, 1))
     cols = _rhs(ok, nrm, vu[j] - vu[i], dist - rest, rest, rate, h, uni, slop)
-    lams = _complementarity(_dense_on, jnp.matmul, A, cols, uni)               # [m, 1 or 2]
+    lams = _complementarity(_dense_on, jnp.matmul, jnp.diagonal, A, cols, uni)               # [m, 1 or 2]
 
     def change(lam):
         p = nrm * lam[:, None]                                   # J^T lam: -p at i, +p at j
@@ -410,7 +418,7 @@ def _chain_solve(xu, vu, w, rest, rate, eps, h, uni, *, slop=None):
     zero = jnp.zeros((1,), xu.dtype)
     bands = (jnp.concatenate([zero, off]), jnp.where(ok, diag * (1 + eps), 1), jnp.concatenate([off, zero]))
     cols = _rhs(ok, nrm, vu[1:] - vu[:-1], dist - rest, rest, rate, h, uni, slop)
-    lams = _complementarity(_tridiagonal_on, _tridiagonal_mul, bands, cols, uni)
+    lams = _complementarity(_tridiagonal_on, _tridiagonal_mul, lambda a: a[1], bands, cols, uni)
 
     def change(lam):
         p = nrm * lam[:, None]                                     # [m, dim]
