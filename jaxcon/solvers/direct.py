@@ -70,9 +70,9 @@ class Direct(Solver):
     pivots stop making progress): each pivot is a solve of the same matrix restricted to the rows held active.
     The pivoting runs without gradient; the impulses are the solve of the final active set, differentiated as
     such (the active set is piecewise constant in the inputs). A slack unilateral row's bias is the speculative
-    C / h, as in `PGS`: it may close the gap within the (sub)step and no further. Cost: at least two solves per
-    right-hand side (the pivoting's first, and the final differentiable one), one more per pivot; under `vmap`
-    every element takes the slowest one's pivots. At most 4 u + 8 pivots (u unilateral rows): a review's random
+    C / h, as in `PGS`: it may close the gap within the (sub)step and no further. Cost: one solve per
+    right-hand side where every row may stay active (all ropes taut, every floor pressed), else two more and one
+    per pivot; under `vmap` every element takes the slowest one's pivots. At most 4 u + 8 pivots (u unilateral rows): a review's random
     complementarity problems of up to 250 rows (condition numbers to 1e8) took at most 69; were the limit
     reached, the last active set's solve would be used, clamped to lam >= 0, with no report.
 
@@ -272,7 +272,8 @@ def _complementarity(solve_on, mul, diag, A, cols, uni):
     unilateral row (an active one with lam < 0, an inactive one with r < 0) at once while that lowers the count of
     infeasible rows, or did within the last 3 pivots; otherwise swap only the infeasible row of largest index
     (Murty's rule, finite for the P-matrix A is: symmetric positive definite with its regularisation). The
-    pivoting carries no gradient; the returned lam solves the final active set, differentiably."""
+    pivoting carries no gradient; the returned lam solves the final active set, differentiably. The first solve
+    (every row active) is differentiable itself and is the answer where it is feasible: one solve."""
     if uni is None:
         return jnp.stack([solve_on(A, None, b) for b in cols], -1)
     limit = 4 * int(np.sum(uni)) + 8                  # pivots at most (uni: static)
@@ -283,16 +284,17 @@ def _complementarity(solve_on, mul, diag, A, cols, uni):
     absA = jax.tree.map(jnp.abs, As)
     eps, tiny = 1e3 * jnp.finfo(cols[0].dtype).eps, jnp.finfo(cols[0].dtype).tiny
 
-    def infeasible(act, b):
-        lam = solve_on(As, act, b)
+    def infeasible(act, b, lam=None):
+        lam = solve_on(As, act, b) if lam is None else lam
         r = mul(As, lam) - b
         # per row, against the size of the terms the row's residual sums (|b| + |A| |lam|): one scale for the
         # whole model let a float32 rope stretch to its whole length beside an unrelated row of large values
         scale = jnp.abs(b) + mul(absA, jnp.abs(lam)) + tiny
         return uni & jnp.where(act, lam * diag(absA) < -eps * scale, r < -eps * scale)
 
-    def active(b):
-        b = lax.stop_gradient(b)
+    def pivoted(b, bad):
+        """The final active set's solve, pivoting from every row active (whose infeasible rows are `bad`)."""
+        bs = lax.stop_gradient(b)
 
         def pivot(carry):
             it, act, bad, best, grace = carry
@@ -301,15 +303,19 @@ def _complementarity(solve_on, mul, diag, A, cols, uni):
             last = jnp.arange(m) == jnp.max(jnp.where(bad, jnp.arange(m), -1))
             act = act ^ jnp.where(block, bad, last)
             grace = jnp.where(count < best, 3, grace - 1)
-            return it + 1, act, infeasible(act, b), jnp.minimum(best, count), grace
+            return it + 1, act, infeasible(act, bs), jnp.minimum(best, count), grace
 
-        act = jnp.ones(m, bool)
-        carry = (0, act, infeasible(act, b), m + 1, 3)
-        return lax.while_loop(lambda c: (c[0] < limit) & jnp.any(c[2]), pivot, carry)[1]
+        carry = (0, jnp.ones(m, bool), bad, m + 1, 3)
+        act = lax.while_loop(lambda c: (c[0] < limit) & jnp.any(c[2]), pivot, carry)[1]
+        return solve_on(A, act, b)
 
     lams = []
     for b in cols:
-        lam = solve_on(A, active(b), b)
+        # every row active first, solved with its gradient: where that is feasible (a taut rope, a pressed floor)
+        # it is the answer, one solve; else the pivoting (`lax.cond`: under `vmap` both run)
+        lam = solve_on(A, None, b)
+        bad = infeasible(jnp.ones(m, bool), lax.stop_gradient(b), lax.stop_gradient(lam))
+        lam = lax.cond(jnp.any(bad), lambda bad: pivoted(b, bad), lambda _: lam, bad)
         lams.append(jnp.where(uni, jnp.maximum(lam, 0), lam))
     return jnp.stack(lams, -1)
 
