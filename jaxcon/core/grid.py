@@ -131,28 +131,12 @@ def _select(cs: ContactSystem, scan, close):
     jc = jnp.maximum(j, 0)
     keep = (j >= 0) & (uid[jc] > uid[:, None]) & close(jc)
     keep = keep & ~jnp.any(jc[:, :, None] == excl[:, None, :], axis=-1)
-    rank = _rank(keep)
+    rank = L.rank_true(keep)
     count = jnp.sum(keep, axis=1)
     slot = jnp.where(keep & (rank < K), rank, K)
     out = jnp.full((n, K + 1), -1, jnp.int32).at[jnp.arange(n)[:, None], slot].set(j.astype(jnp.int32))
     overflow = jnp.sum(jnp.maximum(count - K, 0) + missed).astype(jnp.int32)
     return out[:, :K], overflow
-
-
-def _rank(keep):
-    """How many entries of each row of keep [n, M] (bool) are True before each entry: [n, M] int32, what
-    `cumsum(keep, 1) - keep` gives. XLA CPU computes a cumsum along an axis as a reduce-window as long as the
-    axis (0.7 ms for the 1024-disc box's [1024, 144] candidates); here the rows are packed into 32-bit words
-    and counted with popcounts, elementwise (0.18 ms)."""
-    n, M = keep.shape
-    W = -(-M // 32)
-    bits = jnp.pad(keep, ((0, 0), (0, W * 32 - M))).reshape(n, W, 32).astype(jnp.uint32)
-    shift = jnp.arange(32, dtype=jnp.uint32)
-    words = jnp.sum(bits << shift, axis=-1, dtype=jnp.uint32)            # the bits are distinct: a sum is an or
-    per_word = lax.population_count(words).astype(jnp.int32)
-    before = jnp.cumsum(per_word, axis=1) - per_word                       # W is small (5 in 2-D, 14 in 3-D)
-    within = lax.population_count(words[:, :, None] & ((jnp.uint32(1) << shift) - jnp.uint32(1)))
-    return (before[:, :, None] + within.astype(jnp.int32)).reshape(n, W * 32)[:, :M]
 
 
 def path_search(cs: ContactSystem, x, x_end, h, scan, margin=None):
@@ -186,7 +170,7 @@ def merge_partners(a, b):
     n, K = a.shape
     both = jnp.concatenate([a, jnp.where(jnp.any(b[:, :, None] == a[:, None, :], -1), -1, b)], 1)
     keep = both >= 0
-    rank = _rank(keep)
+    rank = L.rank_true(keep)
     slot = jnp.where(keep & (rank < K), rank, K)
     out = jnp.full((n, K + 1), -1, jnp.int32).at[jnp.arange(n)[:, None], slot].set(both)
     return out[:, :K], jnp.sum(jnp.maximum(jnp.sum(keep, 1) - K, 0)).astype(jnp.int32)

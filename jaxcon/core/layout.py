@@ -518,6 +518,25 @@ def safe_norm(d, axis=0, elementwise: bool = False):
     return dist, d * inv
 
 
+def rank_true(keep):
+    """How many entries of each row of keep [n, M] (bool) are True before each entry: [n, M] int32, what
+    `cumsum(keep, 1) - keep` gives. XLA CPU computes a cumsum along an axis as a reduce-window as long as the
+    axis (0.7 ms for the 1024-disc box's [1024, 144] candidates); here the rows are packed into 32-bit words
+    and counted with popcounts, elementwise (0.18 ms)."""
+    n, M = keep.shape
+    W = -(-M // 32)
+    bits = jnp.pad(keep, ((0, 0), (0, W * 32 - M))).reshape(n, W, 32).astype(jnp.uint32)
+    shift = jnp.arange(32, dtype=jnp.uint32)
+    words = jnp.sum(bits << shift, axis=-1, dtype=jnp.uint32)            # the bits are distinct: a sum is an or
+    per_word = lax.population_count(words).astype(jnp.int32)
+    # the words' running count: a cumsum (a reduce-window as long as the row) for the grid's few words per row
+    # (5 in 2-D, 14 in 3-D), a log-depth scan for long rows (an obstacle's row over every particle)
+    total = jnp.cumsum(per_word, axis=1) if W <= 64 else lax.associative_scan(jnp.add, per_word, axis=1)
+    before = total - per_word
+    within = lax.population_count(words[:, :, None] & ((jnp.uint32(1) << shift) - jnp.uint32(1)))
+    return (before[:, :, None] + within.astype(jnp.int32)).reshape(n, W * 32)[:, :M]
+
+
 def safe_reciprocal(a):
     """1/a where a > 0, else 0 (and a zero derivative there)."""
     ok = a > 0

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from typing import Any, Optional
 
+import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -22,6 +23,7 @@ from jaxcon.core.contact import ContactSystem, Impulses
 from jaxcon.core.contact_rows import (
     UNILATERAL,
     ObstacleBlock,
+    ObstacleColour,
     Rows,
     direction,
     dot as _dot,
@@ -144,7 +146,9 @@ def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impuls
         return update
 
     on, ot = imp.obs_n, imp.obs_t
-    if obs is not None:
+    if obs is not None and obs.sel is not None:
+        v, (on, ot) = _selected_obstacles(colour, w, v, obs, soft[0], on, ot)
+    elif obs is not None:
         v, (on, ot) = L.each_colour(ObstacleBlock(cs.ct.n_obstacles), colour(w), v, ((obs, soft[0]), (on, ot)))
     pn, pt = imp.pair_n, imp.pair_t
     if pairs is not None:
@@ -153,6 +157,55 @@ def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impuls
         vf, (pn, pt) = L.each_colour(block, colour(w.reshape(-1)), v.reshape(dim, -1), ((pairs, soft[1]), (pn, pt)))
         v = vf.reshape(shape)
     return v, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
+
+
+def _selected_obstacles(colour, w, v, obs: Rows, soft, on, ot):
+    """The obstacles' part of `sweep` where `obs.sel` picks the rows within reach (`contact_rows.select_obstacles`):
+    obstacle by obstacle, if every row left out would not change (no impulse, and an update that asks for none:
+    k (target - vn) <= 0), only the picked rows are solved, gathered into `idx`'s order and written back; else
+    the whole obstacle, as without a selection. The same updates either way, on fewer rows: the 1024-disc box
+    has 3072 plane rows, of which about 100 touch."""
+    dim, vshape = v.shape[0], v.shape
+    nview = len(vshape) - 1
+    vf, wf = v.reshape(dim, -1), w.reshape(1, -1)
+    n = vf.shape[1]
+
+    def flat(a):
+        return a.reshape(a.shape[: a.ndim - nview] + (-1,))
+
+    ons, ots = [], []
+    for q in range(obs.gap.shape[0]):
+        f = jax.tree.map(lambda a: flat(a[q]), obs._replace(sel=None))
+        s = None if soft is None else jax.tree.map(lambda a: flat(a[q]), soft)
+        ln, lt = flat(on[q]), flat(ot[q])
+        idx, inside = obs.sel.idx[q], obs.sel.inside[q]
+        still = (ln == 0) & jnp.all(lt == 0, 0) & ((f.target - _dot(vf, f.n)) * f.k <= 0)
+
+        def picked(args, f=f, s=s, idx=idx, q=q):
+            vf, ln, lt = args
+            live = idx < n
+
+            def take(a):
+                return jnp.take(a, jnp.minimum(idx, n - 1), axis=-1)
+
+            fs = jax.tree.map(take, f)
+            fs = fs._replace(k=fs.k * live.astype(fs.k.dtype))            # an unused entry: no row
+            ss = None if s is None else jax.tree.map(take, s)
+            vs, (lns, lts) = colour(take(wf))(take(vf), ObstacleColour(q), ((fs, ss), (take(ln), take(lt))))
+
+            def put(a, b):
+                return a.at[..., idx].set(b, mode="drop")
+            return put(vf, vs), put(ln, lns), put(lt, lts)
+
+        def every(args, f=f, s=s, q=q):
+            vf, ln, lt = args
+            vf, (ln, lt) = colour(wf)(vf, ObstacleColour(q), ((f, s), (ln, lt)))
+            return vf, ln, lt
+
+        vf, ln, lt = lax.cond(jnp.all(inside | still), picked, every, (vf, ln, lt))
+        ons.append(ln.reshape(on.shape[1:]))
+        ots.append(lt.reshape(ot.shape[1:]))
+    return vf.reshape(vshape), (jnp.stack(ons), jnp.stack(ots))
 
 
 def _obstacle_frame(obs: Rows):
