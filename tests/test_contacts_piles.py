@@ -68,20 +68,20 @@ def _with_selection(monkeypatch, mode):
 def test_obstacle_row_selection_changes_no_result(monkeypatch, solver):
     """A model of 256 or more particles sweeps an obstacle's rows only within reach of it (`select_obstacles`),
     checking in every sweep that the rows left out would not change; else it sweeps the whole obstacle. The
-    300-disc box landing (60 steps, float64) is the same with the selection, without it, and with a selection of
-    nothing (every sweep falls back): bitwise for PGS, to rounding for SoftStep (its soft rows' arithmetic is
-    compiled apart); and so are gradients through 8 steps."""
+    300-disc box landing (40 steps, float64: the bottom row lands at step 27) is the same with the selection,
+    without it, and with a selection of nothing (every sweep falls back), and so are gradients through 8 steps: to
+    rounding (here bitwise; XLA may contract the gathered rows' arithmetic into fused multiply-adds differently
+    from the whole obstacle's, 1 ulp, which a pile then amplifies: a review found that on other scenes)."""
     model, state = jc.scenes.disc_box(300, collide="grid")
     out = {}
     for mode in ("off", "on", "none"):
         with monkeypatch.context() as mp:
             _with_selection(mp, mode)
-            _, tr = jc.rollout(model, state, solver, 1 / 60, 60, save_every=10)
+            _, tr = jc.rollout(model, state, solver, 1 / 60, 40, save_every=10)
             grad = jax.grad(lambda v: jc.rollout(model, state.replace(v=v), solver, 1 / 60, 8)[0].x[:, 1].sum())(
                 state.v)
             out[mode] = (np.asarray(tr.x), np.asarray(tr.v), np.asarray(grad))
-    tol = 0 if isinstance(solver, jc.PGS) else 1e-9
     assert float(np.abs(out["off"][0][-1, :, 1]).min()) < 0.51             # the bottom row has landed
     for mode in ("on", "none"):
         for a, b in zip(out[mode], out["off"]):
-            np.testing.assert_allclose(a, b, rtol=0, atol=tol * max(1.0, float(np.abs(b).max())))
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-9 * max(1.0, float(np.abs(b).max())))
