@@ -511,9 +511,9 @@ SELECT_FROM = 256
 def select_obstacles(obs: Rows, vf, h) -> Selection:
     """The obstacle rows a sweep is likely to change (`Selection`): those within h * 2 max|v| of touching (vf
     [dim, n]: the velocities after the external forces), which includes every touching and warm-started row; at
-    most a quarter of the particles per obstacle (the rest are left out of `idx` and in `inside`, so a sweep that
-    needs them solves the whole obstacle). Only indices: no gradient flows through it. The sweep checks, every
-    time, that the rows it leaves out would not change (`solvers.contact.sweep`)."""
+    most a quarter of the particles per obstacle (the rest are left out of both `idx` and `inside`, so a sweep in
+    which one of them would change solves the whole obstacle). Only indices: no gradient flows through it. The
+    sweep checks, every time, that the rows it leaves out would not change (`solvers.contact.sweep`)."""
     gap = lax.stop_gradient(obs.gap)
     Q, n = gap.shape[0], vf.shape[1]
     cap = max(32, -(-n // 4))

@@ -72,9 +72,9 @@ class Direct(Solver):
     such (the active set is piecewise constant in the inputs). A slack unilateral row's bias is the speculative
     C / h, as in `PGS`: it may close the gap within the (sub)step and no further. Cost: one solve per
     right-hand side where every row may stay active (all ropes taut, every floor pressed), else two more and one
-    per pivot; under `vmap` every element takes the slowest one's pivots. At most 4 u + 8 pivots (u unilateral rows): a review's random
-    complementarity problems of up to 250 rows (condition numbers to 1e8) took at most 69; were the limit
-    reached, the last active set's solve would be used, clamped to lam >= 0, with no report.
+    per pivot; under `vmap` every element takes the slowest one's pivots. At most 4 u + 8 pivots (u unilateral
+    rows): a review's random complementarity problems of up to 250 rows (condition numbers to 1e8) took at most
+    69; were the limit reached, the last active set's solve would be used, clamped to lam >= 0, with no report.
 
     The warm-start input is not used (the solve is exact).
 
@@ -210,7 +210,7 @@ def _rows_solve(xu, vu, w, rest, sets, topo, beta, h, eps, slop):
     rel = -(J @ vu.reshape(-1))
     corr = jnp.where(alpha > 0, C / h, beta / h * C)
     uni = _unilateral(topo)
-    slack = np.zeros(C.shape, bool) if uni is None else jnp.asarray(uni) & (C < 0)
+    slack = _slack(uni, C)
     corr = jnp.where(slack, C / h, corr)
     if slop is None:
         cols = [rel + corr]
@@ -235,6 +235,12 @@ def _unilateral(topo):
     """bool [m] in user order: the unilateral rows (ropes, then each unilateral set's rows), or None if none."""
     uni = np.concatenate([topo.is_rope] + [np.full(len(s.particles), s.unilateral) for s in topo.sets])
     return uni if uni.any() else None
+
+
+def _slack(uni, C):
+    """The slack unilateral rows: `uni` (`_unilateral`, or None) where C_lib < 0; they get the speculative bias
+    C / h and no position correction."""
+    return np.zeros(C.shape, bool) if uni is None else jnp.asarray(uni) & (C < 0)
 
 
 def _dense_on(A, act, b):
@@ -400,7 +406,7 @@ def _rhs(ok, nrm, u, C, rest, rate, h, uni, slop):
     where J M^-1 J^T is nearly singular, as on a cloth with shear rods). A slack rope (`uni`, C < 0) has the
     speculative bias C / h and no position change."""
     rel = jnp.sum(u * nrm, -1)
-    slack = np.zeros(C.shape, bool) if uni is None else jnp.asarray(uni) & (C < 0)
+    slack = _slack(uni, C)
     bias = jnp.where(slack, C / h, rate * C)
     if slop is None:
         cols = [rel + bias]
