@@ -179,6 +179,8 @@ def _selected_obstacles(colour, w, v, obs: Rows, soft, on, ot):
         s = None if soft is None else jax.tree.map(lambda a: flat(a[q]), soft)
         ln, lt = flat(on[q]), flat(ot[q])
         idx, inside = obs.sel.idx[q], obs.sel.inside[q]
+        # a row `_solve_row` would leave as it is (no impulse, and k (target - vn) <= 0 asks for none): a change to
+        # the row update must change this test too
         still = (ln == 0) & jnp.all(lt == 0, 0) & ((f.target - _dot(vf, f.n)) * f.k <= 0)
 
         def picked(args, f=f, s=s, idx=idx, q=q):
