@@ -384,10 +384,29 @@ def _invalid(leaves: dict):
     return bad | jnp.any(leaves["restitution"] > 1)
 
 
+class Reuse(NamedTuple):
+    """A grid model's wider candidate list, kept across steps (`grid.reused_search`): `partners` [n, K] (int32,
+    internal indices, -1 empty) within the wider distance of the search at positions `anchor` [dim, n], and
+    `ok` (bool scalar): the list is complete (no candidate of the wider distance was left out), so a later
+    step may pick its pairs from it."""
+
+    partners: Array
+    anchor: Array
+    ok: Array
+
+
+def no_reuse(topo: Topology, ct: ContactTopology, dtype) -> Reuse:
+    """A `Reuse` that no step may use (the first step of a rollout searches)."""
+    return Reuse(jnp.full((topo.n, ct.grid_k), -1, jnp.int32), jnp.zeros((topo.dim, topo.n), dtype),
+                 jnp.zeros((), bool))
+
+
 class Impulses(NamedTuple):
     """Accumulated contact impulses, internal layout: obstacles n [Q, *view], t [Q, dim, *view]; pairs
     n [R, S], t [dim, R, S], or for a grid model n [n, K], t [dim, n, K] with `partners` [n, K] (int32, internal
-    indices, -1 empty) and `overflow` (int32 scalar) of the (sub)step that made them (None without a grid)."""
+    indices, -1 empty) and `overflow` (int32 scalar) of the (sub)step that made them (None without a grid).
+    Between the steps of a rollout a grid model also carries its wider candidate list `reuse` (a `Reuse`;
+    None within a step, and for a state entering a rollout: `sim._enter` gives it `no_reuse`)."""
 
     obs_n: Array
     obs_t: Array
@@ -395,6 +414,7 @@ class Impulses(NamedTuple):
     pair_t: Array
     partners: Array = None
     overflow: Array = None
+    reuse: Any = None
 
 
 # ---- layout: user order <-> internal --------------------------------------------------------------------------------------------------

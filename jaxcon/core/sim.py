@@ -99,7 +99,7 @@ def _enter(model, state):
                     else jnp.asarray(state.contact_t, dtype))
             imp = C.contacts_in(t, ct, cn, ctan)
         if ct.has_grid:
-            imp = imp._replace(partners=C.partners_in(ct, state.contact_partners))
+            imp = imp._replace(partners=C.partners_in(ct, state.contact_partners), reuse=C.no_reuse(t, ct, dtype))
         lam = (lam, imp)
     return sys, x, v, lam
 

@@ -360,12 +360,16 @@ def grid_substepped(sys, substep, substeps: int, x, v, lam, dt):
     for the whole step (`grid_step`). The contact slots are the same in every substep of a step, so their
     impulses add up over the step as any other impulse, and the next step's warm start matches them slot by
     slot as after a single substep."""
+    blocks, imp = lam
+    lam = (blocks, imp._replace(reuse=None))
+
     def solve(found):
         return substepped(functools.partial(substep, found=found), substeps, x, v, lam, dt, path=True)
-    return grid_step(sys, x, v, dt, solve, substeps)
+    x, v, (blocks, imp), reuse = grid_step(sys, x, v, dt, solve, substeps, imp.reuse)
+    return x, v, (blocks, imp._replace(reuse=reuse))
 
 
-def grid_step(sys, x, v, dt, solve, substeps: int = 1):
+def grid_step(sys, x, v, dt, solve, substeps: int = 1, reuse=None):
     """A step of a model with a neighbour grid, `solve(found) -> (x, v, (lam, imp), trail)` being the solver's
     step (all its substeps, `substepped`) with the candidate pairs `found` = (partners, overflow)
     (`grid.neighbours`), and `trail` [substeps, *x.shape] the positions after each substep.
@@ -385,13 +389,20 @@ def grid_step(sys, x, v, dt, solve, substeps: int = 1):
     was not solved (`grid.unsolved`), the step is solved again from its start with both lists' pairs
     (`grid.merge_partners`), up to GRID_ATTEMPTS solves, and what the last check still finds is counted in
     the overflow, with the touching pairs the second search had no slot for (an upper bound). One traced copy
-    of the solve, in a loop of `lax.cond`s (under `vmap` every branch runs: GRID_ATTEMPTS solves per step)."""
+    of the solve, in a loop of `lax.cond`s (under `vmap` every branch runs: GRID_ATTEMPTS solves per step).
+
+    `reuse`: the wider candidate list a rollout carries between steps (`core.contact.Reuse`), from which the
+    step takes its candidates where it may instead of searching (`grid.reused_search`), or None (search).
+    Returns (x, v, lam, reuse), reuse None where it was."""
     cs = sys.contact
     h = dt / substeps
     dim = x.shape[0]
     v_free = sys.apply_gravity(v, dt)
     r_min = lax.stop_gradient(jnp.min(cs.radius_flat))
-    found, scan = grid.grid_search(cs, x, v_free, dt)
+    if reuse is None:
+        found, scan = grid.grid_search(cs, x, v_free, dt)
+    else:
+        found, scan, reuse = grid.reused_search(cs, x, v_free, dt, reuse)
     x0, v0 = lax.stop_gradient(x), lax.stop_gradient(v)
     g = lax.stop_gradient(sys.apply_gravity(jnp.zeros_like(v), 1.0))
     k = jnp.arange(1, substeps + 1, dtype=x.dtype).reshape((substeps,) + (1,) * x.ndim)
@@ -430,7 +441,7 @@ def grid_step(sys, x, v, dt, solve, substeps: int = 1):
         return lax.cond(carry[3], lambda c: run(i, c), lambda c: c, carry)
 
     out = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(lambda f: solve(f)[:3], found))
-    return lax.fori_loop(0, GRID_ATTEMPTS, attempt, found + (out, jnp.ones((), bool)))[2]
+    return lax.fori_loop(0, GRID_ATTEMPTS, attempt, found + (out, jnp.ones((), bool)))[2] + (reuse,)
 
 
 class Begin(NamedTuple):
