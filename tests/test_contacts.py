@@ -269,16 +269,14 @@ def test_models_without_contacts_trace_no_contact_code(monkeypatch):
 
 @pytest.mark.parametrize("solver", [jc.Direct(), jc.RATTLE(), jc.Jacobi(), jc.XPBD(), jc.SoftStep(),
                                     jc.Penalty(stiffness=1e4, substeps=8)], ids=lambda s: type(s).__name__)
-def test_solvers_without_contact_support_refuse_clearly(solver):
-    """Direct (one linear or complementarity solve, without friction or the contact stages) refuses contacts; so
-    does any solver whose `supports_contacts` is False. The others, RATTLE among them, must run a contact model."""
+def test_every_solver_runs_a_contact_model(solver):
+    """Every built-in solver supports contacts (Direct since its contact sweeps between exact solves,
+    tests/test_contacts_direct.py) and runs a contact model; one whose `supports_contacts` is False refuses
+    clearly (tests/test_contacts_grid.py)."""
     model, state = _ball(0.5)
-    if type(solver).__name__ == "Direct" or not solver.supports_contacts:
-        with pytest.raises(ValueError, match="does not support contacts"):
-            jc.rollout(model, state, solver, 1 / 240, 2)
-    else:
-        final, _ = jc.rollout(model, state, solver, 1 / 240, 2)
-        assert np.all(np.isfinite(np.asarray(final.x)))
+    assert solver.supports_contacts
+    final, _ = jc.rollout(model, state, solver, 1 / 240, 2)
+    assert np.all(np.isfinite(np.asarray(final.x)))
 
 
 @pytest.mark.parametrize("kwargs, match", [

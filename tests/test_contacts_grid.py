@@ -138,8 +138,12 @@ def test_bad_max_neighbours_and_solvers_without_contacts():
     with pytest.raises(ValueError, match="collide"):
         jc.build(x, np.ones(4), radius=R, collide="grids")
     model, state = jc.build(x, np.ones(4), radius=R, collide="grid", planes=BOX)
-    with pytest.raises(ValueError, match="does not support contacts"):       # Direct: no contacts, grid or not
-        jc.rollout(model, state, jc.Direct(), 0.01, 2)
+
+    class NoContacts(jc.Direct):
+        supports_contacts = False
+
+    with pytest.raises(ValueError, match="NoContacts does not support contacts"):     # grid or not
+        jc.rollout(model, state, NoContacts(), 0.01, 2)
 
 
 @pytest.mark.parametrize("solver", [jc.PGS(4, substeps=2), jc.XPBD(2, substeps=4), jc.RATTLE(4)],

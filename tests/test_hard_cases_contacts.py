@@ -83,7 +83,19 @@ EXPECT = {
     ("RATTLE", "heavy_on_light_100"): (S, 0.6, 0.0, 1e-3),
     ("RATTLE", "break_16_dt_1_60"): (S, 0.01, 0.0, 1e-9, 1e-12, 1e-12),
     ("RATTLE", "drape_from_1m"): (D,),
+    # Direct(16 substeps; split or not): its contacts are PGS's rows, swept 10 times per substep between exact
+    # solves of the constraints (none here), so it runs these as PGS(10, substeps=16) does, bit for bit: the
+    # 100:1 column sinks 0.18% of a radius and the break holds to 0.12% of a diameter.
+    ("Direct", "heavy_on_light_100"): (S, 0.01, 0.0, 1e-3),
+    ("Direct", "break_16_dt_1_60"): (S, 0.01, 0.0, 1e-9, 1e-12, 1e-12),
+    ("Direct-split", "heavy_on_light_100"): (S, 0.01, 0.0, 1e-3),
+    ("Direct-split", "break_16_dt_1_60"): (S, 0.01, 0.0, 1e-9, 1e-12, 1e-12),
 }
+
+#: Not run: Direct's dense solve of the 16x16 drape's rows (O(m^3) for its 930 rods, 11 times per substep, 16
+#: substeps, 120 steps) takes far longer than the suite allows; Direct is meant for small systems, and its
+#: contacts with constraints are tested on chains and dumbbells (tests/test_contacts_direct.py).
+TOO_LARGE = {("Direct", "drape_from_1m"), ("Direct-split", "drape_from_1m")}
 
 
 @functools.lru_cache(maxsize=None)
@@ -122,7 +134,7 @@ _OPTIMISED = {("SoftStep", "drape_from_1m")}
 
 @pytest.mark.parametrize("solver, case", [
     pytest.param(s, c, id=f"{s}-{c}", marks=[pytest.mark.optimised] if (s, c) in _OPTIMISED else [])
-    for c in CASES for s in CONTACT_SOLVERS])
+    for c in CASES for s in CONTACT_SOLVERS if (s, c) not in TOO_LARGE])
 def test_hard_contact_case(solver, case):
     r = run(solver, case)
     if (solver, case) not in EXPECT:
@@ -148,6 +160,8 @@ def table() -> str:
             "momentum change before cushion (N s) | max one-step KE increase / KE_0 |", "|---" * 8 + "|"]
     for solver in CONTACT_SOLVERS:
         for case in CASES:
+            if (solver, case) in TOO_LARGE:
+                continue
             r = run(solver, case)
             extra = (f"{r['momentum_change']:.1e} | {r['max_ke_increase']:.1e}" if "momentum_change" in r
                      else "| ")

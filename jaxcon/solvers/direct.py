@@ -11,13 +11,18 @@ import numpy as np
 from jax import lax
 from jax.lax.linalg import tridiagonal_solve
 
+from typing import Optional
+
+from jaxcon.core import contact_rows
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
-from jaxcon.solvers.common import check_stabilization
+from jaxcon.solvers import contact
+from jaxcon.solvers.common import (check_stabilization, run_substeps, solve_phases, split_contacts, step_begin,
+                                   step_end, with_contacts)
 
 _METHODS = ("auto", "dense", "tridiagonal")
 
@@ -78,6 +83,17 @@ class Direct(Solver):
 
     The warm-start input is not used (the solve is exact).
 
+    Contacts (a model with `planes`, `spheres` or `collide`): the contact rows are PGS's (speculative contacts,
+    restitution in two phases, friction in the Coulomb cone, the time-of-impact correction and the position
+    pass; warm started from the previous step), and they have no exact solve here: friction's cone makes the
+    problem no linear complementarity problem. Each (sub)step alternates, block by block (block Gauss-Seidel),
+    the exact solve of every constraint row given the contact impulses so far, and one sweep over the contact
+    rows (`contact.sweep`) given the constraint impulses: `contact_iterations` sweeps, each followed by the
+    exact solve, which comes first as well. So the constraints end the (sub)step exactly as above, and the
+    contacts are as converged as `contact_iterations` PGS sweeps over them with the constraints solved exactly
+    in between. With `stabilization='split'` each exact solve also gives its position correction, and the
+    last one moves the positions before the contacts' position pass.
+
     Args:
       beta: Baumgarte factor in [0, 1], a differentiable leaf.
       substeps: (sub)steps per step, static, >= 1.
@@ -90,6 +106,10 @@ class Direct(Solver):
         adaptive slop (lam, the physical impulse), and for beta C over those beyond it, a position correction
         that moves the positions of the substep and does not touch the velocities.
       slop: split impulses' slop, as in `PGS`.
+      contact_iterations: sweeps over the contact rows per (sub)step, each followed by the exact solve of the
+        constraints (static, >= 1; a model without contacts ignores it).
+      contact_slop: the overlap left to the contacts, as `PGS.contact_slop`.
+      contact_passes: passes of the contacts' position pass, as `PGS.contact_passes`.
     """
 
     #: assembles its matrices in user particle order, so `jc.batched_rollout` batches it with `jax.vmap`
@@ -102,9 +122,18 @@ class Direct(Solver):
     regularisation: Any = 1e-6
     stabilization: str = static_field(default="baumgarte")
     slop: Any = 0.005
+    contact_iterations: int = static_field(default=10)
+    contact_slop: Any = contact_rows.CONTACT_SLOP
+    contact_passes: Optional[int] = static_field(default=None)
+
+    supports_contacts = True
 
     def __post_init__(self):
         check_stabilization("Direct", self.stabilization)
+        check_int("Direct", "contact_iterations", self.contact_iterations, 1)
+        check_scalar("Direct", "contact_slop", self.contact_slop, 0.0, 0.5)
+        if self.contact_passes is not None:
+            check_int("Direct", "contact_passes", self.contact_passes, 1)
         check_scalar("Direct", "slop", self.slop, 0.0, 1.0)
         check_scalar("Direct", "beta", self.beta, 0.0, 1.0)
         check_int("Direct", "substeps", self.substeps, 1)
@@ -123,6 +152,8 @@ class Direct(Solver):
 
     def _step(self, sys, x, v, lam, dt):
         topo = sys.topology
+        if sys.contact is not None:
+            return self._step_contacts(sys, x, v, lam, dt)
         if topo.has_sets:
             return self._step_rows(sys, x, v, lam, dt)
         tri = self._use_tridiagonal(topo)
@@ -170,6 +201,66 @@ class Direct(Solver):
             return x + h * move, v, L.constraints_in(topo, lam_u)
 
         return substepped(substep, self.substeps, x, v, lam, dt)
+
+
+    def _exact(self, sys, h):
+        """The exact solve of every constraint row over a (sub)step of length h: (xu, vu) [n, dim], user order,
+        -> (lam [m] user order, (velocity change, and with split impulses the position correction) [n, dim] user
+        order); None without constraints."""
+        topo = sys.topology
+        if not topo.m:
+            return None
+        dtype = sys.w.dtype
+        beta = jnp.asarray(self.beta, dtype)
+        w = L.per_particle_out(topo, sys.w)
+        rest = L.constraints_out(topo, sys.rest)
+        eps = _regularisation(self.regularisation, dtype)
+        slop = jnp.asarray(self.slop, dtype) if self.stabilization == "split" else None
+        if topo.has_sets:
+            sets = _user_sets(sys)
+            return lambda xu, vu: _rows_solve(xu, vu, w, rest[: topo.m_pairs], sets, topo, beta, h, eps, slop)
+        solve = _chain_solve if self._use_tridiagonal(topo) else functools.partial(_dense_solve, topo=topo)
+        return lambda xu, vu: solve(xu, vu, w, rest, beta / h, eps, h, _unilateral(topo), slop=slop)
+
+    def _step_contacts(self, sys, x, v, lam, dt):
+        """The step of a model with contacts: the contact kind's stages as in `PGS` (`common.step_begin`,
+        `solve_phases`, `step_end`), its sweeps alternating with the exact solve of the constraints (class
+        docstring)."""
+        topo, cs = sys.topology, sys.contact
+        dtype = x.dtype
+        beta = jnp.asarray(self.beta, dtype)
+        slop = jnp.asarray(self.contact_slop, dtype)
+
+        def substep(x, v, lam_ws, h, found=None):
+            blocks, imp_ws = split_contacts(sys, lam_ws)
+            cold = with_contacts(sys, jax.tree.map(jnp.zeros_like, blocks), imp_ws)     # no constraint warm start
+            b = step_begin(sys, x, v, cold, beta, h, None, True, 1.0, True, found, slop)
+            exact, xu = self._exact(sys, h), L.particles_out(topo, x)
+
+            def project(v, dvs):
+                """v less the last exact solve's velocity change dvs[0], solved again: (v, lam, dvs)."""
+                if exact is None:
+                    return v, None, dvs
+                free = L.particles_out(topo, v) - dvs[0]
+                lam_u, dvs = exact(xu, free)
+                return L.particles_in(topo, free + dvs[0]), lam_u, dvs
+
+            def sweeps(obs, pairs):
+                def sweep(carry):
+                    v, lam_u, dvs, imp = carry
+                    v, imp = contact.sweep(cs, sys.w, v, obs, pairs, imp)
+                    return project(v, dvs) + (imp,)
+                return sweep
+
+            start = project(b.v, (jnp.zeros_like(xu),)) + (b.imp,)
+            v, lam_u, dvs, imp = solve_phases(sys, b.v_free, b.obs, b.pairs, self.contact_iterations, start, sweeps)
+            moved = None if len(dvs) < 2 else (lambda x: x + L.particles_in(topo, dvs[1]))   # split: correction
+            x = step_end(sys, x, v, b.v_free, b.obs, b.pairs, imp, h, passes=self.contact_passes, rods_pass=moved,
+                         contact_slop=slop)
+            lam = b.lam if lam_u is None else L.constraints_in(topo, lam_u)
+            return x, v, with_contacts(sys, lam, imp)
+
+        return run_substeps(sys, substep, self.substeps, x, v, lam, dt)
 
 
 def _user_sets(sys):
