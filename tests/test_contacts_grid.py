@@ -289,53 +289,90 @@ def test_contact_passes_sets_the_position_pass_count():
 _REUSED_SEARCH = jc.core.grid.reused_search
 
 
-def _count_reuse(monkeypatch, force_search=False):
+def _count_reuse(monkeypatch, mode="keep"):
     """Wrap the grid's search of a rollout step (`grid.reused_search`): returns a list that collects, per step
-    traced and run, whether the step took its candidates from the kept list; with `force_search`, no step may."""
-    from jaxcon.core import grid
-    taken, real = [], _REUSED_SEARCH
+    run, whether the step took its candidates from the kept list and whether the list it leaves is complete.
+    `mode`: "keep" (as the library does),
+    "search" (no step may take the list) or "plain" (no kept list at all: `grid.grid_search` at every step, as
+    before kept lists existed)."""
+    from jaxcon.core import contact, grid
+    taken = []
 
     def wrapped(cs, x, v, h, prev):
         # the same operations either way (a comparison XLA cannot fold), so that both runs compile to the same
         # program: XLA's CPU backend may contract a program's float arithmetic into fused multiply-adds
         # differently once a branch folds away, and a pile turns such rounding into a different landing
         a = prev.anchor[0, 0]
-        prev = prev._replace(ok=prev.ok & ((a != a) if force_search else (a == a)))
-        found, scan, reuse = real(cs, x, v, h, prev)
-        jax.debug.callback(lambda side: taken.append(bool(side == 0)), scan[2])     # a taken list: cell side 0
-        return found, scan, reuse
+        prev = prev._replace(ok=prev.ok & ((a != a) if mode == "search" else (a == a)))
+        found, reuse, reach = _REUSED_SEARCH(cs, x, v, h, prev)
+        jax.debug.callback(lambda t, ok: taken.append((bool(t), bool(ok))),
+                           prev.ok & jnp.all(reuse.anchor == prev.anchor), reuse.ok)
+        return found, reuse, reach
 
     monkeypatch.setattr(grid, "reused_search", wrapped)
+    monkeypatch.setattr(contact, "no_reuse", (lambda *a: None) if mode == "plain" else _NO_REUSE)
     jax.clear_caches()
     return taken
 
 
-@pytest.mark.parametrize("case", ["discs", "balls, 2 substeps, XPBD"])
+_NO_REUSE = jc.core.contact.no_reuse
+
+
+def _balls_3d():
+    rng = np.random.default_rng(0)
+    x = np.array([[R + 0.03 + a * 0.11 + (l % 2) * 0.03, R + 0.03 + b * 0.11 + (l % 2) * 0.03, R + 0.01 + 0.12 * l]
+                  for l in range(3) for a in range(2) for b in range(2)]) + rng.uniform(-0.003, 0.003, (12, 3))
+    planes = [([0.0, 0.0, 1.0], 0.0), ([1.0, 0.0, 0.0], 0.0), ([-1.0, 0.0, 0.0], -0.3),
+              ([0.0, 1.0, 0.0], 0.0), ([0.0, -1.0, 0.0], -0.3)]
+    return jc.build(x, np.ones(12), radius=R, collide="grid", planes=planes, friction=0.3)
+
+
+def _mixed_radii():
+    """A lattice of small discs and one disc 3.2 times larger: cells sized by the large one hold many small
+    ones, and the wider list's cells overflow their buckets' scan (a review's case)."""
+    rs, sp = 0.05, 0.101
+    pts = [[0.3 + i * sp, rs + 0.0005 + j * sp] for i in range(12) for j in range(8)] + [[3.0, 0.17]]
+    r = np.full(97, rs)
+    r[-1] = 0.16
+    return jc.build(np.array(pts), np.ones(97), radius=r, collide="grid",
+                    planes=[((0.0, 1.0), 0.0), ((1.0, 0.0), 0.25), ((-1.0, 0.0), -3.5)])
+
+
+@pytest.mark.parametrize("case", ["discs", "balls, 2 substeps, XPBD", "mixed radii", "3 slots"])
 def test_kept_candidate_lists_change_no_result(case, monkeypatch):
     """A rollout takes a step's candidate pairs from the wider list of an earlier search while no pair left out
-    of it can have become a candidate (`grid.reused_search`). Every result is bitwise the same as searching at
-    every step (a step's candidates are put in the search's order, `grid._scan_order`), and the lists are
-    taken in most steps of a pile that lands and rests."""
+    of it can have become a candidate (`grid.reused_search`). Every output is bitwise the same as with the usual
+    search at every step (`grid.grid_search`, as before kept lists), and as with the wide search at every step;
+    the lists are taken in most steps of a pile that lands and rests. Where the wider list overflows (mixed
+    radii: its wider cells leave bucket entries unscanned; 3 slots: more candidates than slots) the step uses
+    the usual search, and reports the same overflow."""
+    solver, dt, steps = jc.PGS(10), 1 / 60, 150
     if case == "discs":
         model, state = jc.scenes.disc_box(64, collide="grid")
-        solver, dt, steps = jc.PGS(10), 1 / 60, 150
+    elif case == "3 slots":
+        model, state = jc.scenes.disc_box(64, collide="grid", max_neighbours=3)
+    elif case == "mixed radii":
+        model, state = _mixed_radii()
+        steps = 120
     else:
-        rng = np.random.default_rng(0)
-        x = np.array([[R + 0.03 + a * 0.11 + (l % 2) * 0.03, R + 0.03 + b * 0.11 + (l % 2) * 0.03, R + 0.01 + 0.12 * l]
-                      for l in range(3) for a in range(2) for b in range(2)]) + rng.uniform(-0.003, 0.003, (12, 3))
-        planes = [([0.0, 0.0, 1.0], 0.0), ([1.0, 0.0, 0.0], 0.0), ([-1.0, 0.0, 0.0], -0.3),
-                  ([0.0, 1.0, 0.0], 0.0), ([0.0, -1.0, 0.0], -0.3)]
-        model, state = jc.build(x, np.ones(12), radius=R, collide="grid", planes=planes, friction=0.3)
+        model, state = _balls_3d()
         solver, dt, steps = jc.XPBD(2, substeps=2), 1 / 120, 200
     runs = {}
-    for force in (False, True):
-        taken = _count_reuse(monkeypatch, force)
+    for mode in ("keep", "search", "plain"):
+        taken = _count_reuse(monkeypatch, mode)
         final, traj = jc.rollout(model, state, solver, dt, steps)
         jax.block_until_ready(traj.x)
-        runs[force] = (taken, final, traj)
-    taken, final, traj = runs[False]
-    assert len(taken) == steps and not taken[0] and sum(taken) > steps // 2
-    assert not any(runs[True][0])
-    assert int(jnp.max(traj.contact_overflow)) == 0
-    for a, b in zip(jax.tree.leaves((final, traj)), jax.tree.leaves(runs[True][1:])):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        runs[mode] = (taken, final, traj)
+    record, final, traj = runs["keep"]
+    taken, complete = [t for t, _ in record], [c for _, c in record]
+    assert len(taken) == steps and not taken[0]
+    if case in ("discs", "balls, 2 substeps, XPBD"):
+        assert sum(taken) > steps // 2 and all(complete)
+        assert int(jnp.max(traj.contact_overflow)) == 0
+    else:
+        assert not all(complete)
+        assert (int(jnp.max(traj.contact_overflow)) > 0) == (case == "3 slots")
+    assert not any(t for t, _ in runs["search"][0]) and not runs["plain"][0]
+    for other in ("search", "plain"):
+        for a, b in zip(jax.tree.leaves((final, traj)), jax.tree.leaves(runs[other][1:])):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

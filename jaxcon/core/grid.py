@@ -104,7 +104,8 @@ def _reach(r, h, spread, skin):
 
 def reused_search(cs: ContactSystem, x, v, h, prev: Reuse):
     """`grid_search` for a step of a rollout, which keeps a wider list across steps (a Verlet list):
-    ((partners, overflow), scan, reuse).
+    ((partners, overflow), reuse, reach), reach the usual cell side (`_reach`), at which `path_search` scans
+    when it runs after this step (its `floor`).
 
     A search lists the pairs within (1 + GRID_SKIN + E)(r_i + r_j) + h |v_j - v_i| (E = GRID_REUSE_SKIN) with
     the positions it was made at, `reuse` (`core.contact.Reuse`). A later step takes its candidates (the pairs
@@ -113,13 +114,15 @@ def reused_search(cs: ContactSystem, x, v, h, prev: Reuse):
     a common offset, the middle of their range) and s the velocities' spread (`_spread`, |v_j - v_i| <= 2 s):
     a pair left out of the list was at least (1 + GRID_SKIN + E)(r_i + r_j) apart, has come at most 2 D closer,
     and its usual distance has grown by at most 2 h s, so it is no candidate now. Otherwise (and always under
-    `vmap`, where the `lax.cond` runs both branches) it searches again. Either way a step's candidates are put
-    in the order `grid_search` gives them (`_scan_order`), so they are the same arrays, and the results the
-    same, as with a search at every step. A step that takes the list returns a `scan` of cell side 0, so
-    `path_search` scans again if it needs to."""
+    `vmap`, where the `lax.cond` runs both branches) it searches again. Where the wider list is incomplete
+    (more than K candidates in a row, or bucket entries its wider cells left unscanned) the step's candidates
+    come from the usual search (`grid_search`), as without a kept list. A step's candidates are put in the order
+    the usual search gives them (`_scan_order`), so they are the same arrays, and the results the same, as
+    with the usual search at every step."""
     xf, vf, r = _flat(cs, x, v)
     close = _closer(xf, vf, r, h, GRID_SKIN)
     spread = _spread(vf)
+    reach = _reach(r, h, spread, GRID_SKIN)
     dev = xf - prev.anchor
     dev = dev - (jnp.max(dev, 1, keepdims=True) + jnp.min(dev, 1, keepdims=True)) / 2
     moved = jnp.sqrt(jnp.max(_dot(dev, dev)))
@@ -128,16 +131,12 @@ def reused_search(cs: ContactSystem, x, v, h, prev: Reuse):
     def search(_):
         scan = _scan(cs.ct, xf, _reach(r, h, spread, GRID_SKIN + GRID_REUSE_SKIN))
         wide, over = _select(cs, scan, _closer(xf, vf, r, h, GRID_SKIN + GRID_REUSE_SKIN))
-        found = lax.cond(over == 0, lambda _: _pick(wide, close), lambda _: _select(cs, scan, close), None)
-        return found, scan, Reuse(wide, xf, over == 0)
+        found = lax.cond(over == 0, lambda _: _pick(wide, close),
+                         lambda _: _select(cs, _scan(cs.ct, xf, reach), close), None)
+        return found, Reuse(wide, xf, over == 0)
 
-    def take(_):
-        n, M = xf.shape[1], 3 ** xf.shape[0] * GRID_SCAN * cs.ct.grid_k
-        scan = (jnp.full((n, M), -1, jnp.int32), jnp.zeros((n,), jnp.int32), jnp.zeros((), xf.dtype))
-        return _pick(prev.partners, close), scan, prev
-
-    (partners, overflow), scan, reuse = lax.cond(reuse, take, search, None)
-    return (_scan_order(partners, xf, _reach(r, h, spread, GRID_SKIN)), overflow), scan, reuse
+    (partners, overflow), reuse = lax.cond(reuse, lambda _: (_pick(prev.partners, close), prev), search, None)
+    return (_scan_order(partners, xf, reach), overflow), reuse, reach
 
 
 def _scan_order(partners, xf, reach):
@@ -232,19 +231,24 @@ def _select(cs: ContactSystem, scan, close):
     return out, extra + jnp.sum(missed).astype(jnp.int32)
 
 
-def path_search(cs: ContactSystem, x, x_end, h, scan, margin=None):
+def path_search(cs: ContactSystem, x, x_end, h, scan, margin=None, floor=None):
     """The pairs that touch on the way from x to x_end [dim, *view] (each particle on the straight line between
     them: the nearest the pair comes is below r_i + r_j, less rounding; with `margin` [n], a per-particle
     widening, below r_i + r_j + margin_i + margin_j), as `neighbours` lists them (partners [n, K], overflow).
     The earlier search's `scan` is used again where its cells are wide enough for these displacements, else the
-    particles are scanned again (`lax.cond`)."""
+    particles are scanned again (`lax.cond`); with `scan` None (a step of `reused_search`) they are scanned in
+    cells of the larger of the side these displacements need and `floor`, the step's usual side (so the scan
+    is the one `grid_search` would have made and left for this check, where its cells were wide enough)."""
     dim = x.shape[0]
     xf, xe = (lax.stop_gradient(a.reshape(dim, -1)) for a in (x, x_end))
     r = lax.stop_gradient(cs.radius_flat)
     if margin is not None:
         r = r + lax.stop_gradient(margin)
     reach = 2 * (1 + GRID_SKIN) * jnp.max(r) + 2 * _spread(xe - xf)
-    scan = lax.cond(reach <= scan[2], lambda _: scan, lambda _: _scan(cs.ct, xf, reach), None)
+    if scan is None:
+        scan = _scan(cs.ct, xf, jnp.maximum(reach, floor))
+    else:
+        scan = lax.cond(reach <= scan[2], lambda _: scan, lambda _: _scan(cs.ct, xf, reach), None)
 
     def close(jc):
         d0 = xf[:, jc] - xf[:, :, None]

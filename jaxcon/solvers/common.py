@@ -400,9 +400,10 @@ def grid_step(sys, x, v, dt, solve, substeps: int = 1, reuse=None):
     v_free = sys.apply_gravity(v, dt)
     r_min = lax.stop_gradient(jnp.min(cs.radius_flat))
     if reuse is None:
-        found, scan = grid.grid_search(cs, x, v_free, dt)
+        (found, scan), floor = grid.grid_search(cs, x, v_free, dt), None
     else:
-        found, scan, reuse = grid.reused_search(cs, x, v_free, dt, reuse)
+        found, reuse, floor = grid.reused_search(cs, x, v_free, dt, reuse)
+        scan = None
     x0, v0 = lax.stop_gradient(x), lax.stop_gradient(v)
     g = lax.stop_gradient(sys.apply_gravity(jnp.zeros_like(v), 1.0))
     k = jnp.arange(1, substeps + 1, dtype=x.dtype).reshape((substeps,) + (1,) * x.ndim)
@@ -426,7 +427,7 @@ def grid_step(sys, x, v, dt, solve, substeps: int = 1, reuse=None):
             if substeps > 1:
                 chord = x0 + (k / substeps) * (trail[-1] - x0)
                 margin = jnp.max(jnp.sqrt(jnp.sum((trail - chord).reshape(substeps, dim, -1) ** 2, 1)), 0)
-            wide = grid.path_search(cs, x, out[0], dt, scan, margin)
+            wide = grid.path_search(cs, x, out[0], dt, scan, margin, floor)
             missed = grid.unsolved(wide[0], partners)
             last = i == GRID_ATTEMPTS - 1
             both, dropped = grid.merge_partners(partners, wide[0])

@@ -88,10 +88,11 @@ class Direct(Solver):
     pass; warm started from the previous step), and they have no exact solve here: friction's cone makes the
     problem no linear complementarity problem. Each (sub)step alternates, block by block (block Gauss-Seidel),
     the exact solve of every constraint row given the contact impulses so far, and one sweep over the contact
-    rows (`contact.sweep`) given the constraint impulses: `contact_iterations` sweeps, each followed by the
-    exact solve, which comes first as well. So the constraints end the (sub)step exactly as above, and the
-    contacts are as converged as `contact_iterations` PGS sweeps over them with the constraints solved exactly
-    in between. With `stabilization='split'` each exact solve also gives its position correction, and the
+    rows (`contact.sweep`) given the constraint impulses: `contact_iterations` sweeps (at least one in each of
+    the two restitution phases, as in `PGS`), each followed by the exact solve, which comes first as well, and
+    once more after the restitution guard has mixed the two phases. So the constraints end the (sub)step
+    exactly as above, and the contacts are as converged as that many PGS sweeps over them with the
+    constraints solved exactly in between. With `stabilization='split'` each exact solve also gives its position correction, and the
     last one moves the positions before the contacts' position pass.
 
     Args:
@@ -107,7 +108,8 @@ class Direct(Solver):
         that moves the positions of the substep and does not touch the velocities.
       slop: split impulses' slop, as in `PGS`.
       contact_iterations: sweeps over the contact rows per (sub)step, each followed by the exact solve of the
-        constraints (static, >= 1; a model without contacts ignores it).
+        constraints (static, >= 1; at least 2 run, one per restitution phase; a model without contacts ignores
+        it).
       contact_slop: the overlap left to the contacts, as `PGS.contact_slop`.
       contact_passes: passes of the contacts' position pass, as `PGS.contact_passes`.
     """
@@ -254,6 +256,9 @@ class Direct(Solver):
 
             start = project(b.v, (jnp.zeros_like(xu),)) + (b.imp,)
             v, lam_u, dvs, imp = solve_phases(sys, b.v_free, b.obs, b.pairs, self.contact_iterations, start, sweeps)
+            # the restitution guard mixes the two phases' ends: exact for rods (the rows are linear), not for a
+            # unilateral row whose activity differs between them, so the constraints are solved once more
+            v, lam_u, dvs = project(v, dvs)
             moved = None if len(dvs) < 2 else (lambda x: x + L.particles_in(topo, dvs[1]))   # split: correction
             x = step_end(sys, x, v, b.v_free, b.obs, b.pairs, imp, h, passes=self.contact_passes, rods_pass=moved,
                          contact_slop=slop)
