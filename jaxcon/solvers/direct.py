@@ -322,7 +322,7 @@ def _rows_solve(xu, vu, w, rest, sets, topo, beta, h, eps, slop):
             inside = inside.at[:mp].set(rod_in)
         inside = inside | slack
         cols = [rel + jnp.where(inside, corr, 0), h * jnp.where(inside, 0, corr)]
-    lams = _complementarity(_dense_on, jnp.matmul, jnp.diagonal, A, [jnp.where(ok, c, 0) for c in cols], uni)
+    lams = _columns(_dense_on, jnp.matmul, jnp.diagonal, A, [jnp.where(ok, c, 0) for c in cols], uni, slack & ok, h)
     changes = tuple((J.T @ lams[:, c]).reshape(n, dim) * w[:, None] for c in range(lams.shape[1]))
     return lams[:, 0], changes
 
@@ -335,8 +335,24 @@ def _unilateral(topo):
 
 def _slack(uni, C):
     """The slack unilateral rows: `uni` (`_unilateral`, or None) where C_lib < 0; they get the speculative bias
-    C / h and no position correction."""
+    C / h, and in split impulses' position correction what the velocity solve leaves of their slack
+    (`_columns`)."""
     return np.zeros(C.shape, bool) if uni is None else jnp.asarray(uni) & (C < 0)
+
+
+def _columns(solve_on, mul, diag, A, cols, uni, slack, h):
+    """`_complementarity` of the right-hand sides `cols`; with split impulses' two (velocity, position), the
+    position one is solved after the velocity one, and a slack unilateral row (`slack`) may take in it the slack
+    the velocity solve leaves it, C_lib + h (rate after the velocity impulses) = -h r_v (r_v = A lam_v - b_v >= 0
+    where the velocity solve leaves it inactive, 0 where it closes the gap): the position correction may close
+    what is left of the gap and no more. (It was 0, so a slack row resisted any stretching in the position
+    correction as if taut: with a unilateral set, a chain landing on the floor diverged, a review's case.)"""
+    if len(cols) == 1 or uni is None:
+        return _complementarity(solve_on, mul, diag, A, cols, uni)
+    lam_v = _complementarity(solve_on, mul, diag, A, cols[:1], uni)
+    r_v = mul(A, lam_v[:, 0]) - cols[0]
+    lam_p = _complementarity(solve_on, mul, diag, A, [jnp.where(slack, -h * r_v, cols[1])], uni)
+    return jnp.concatenate([lam_v, lam_p], 1)
 
 
 def _dense_on(A, act, b):
@@ -485,7 +501,8 @@ def _dense_solve(xu, vu, w, rest, rate, eps, h, uni, *, topo, slop=None):
     diag = jnp.diagonal(A)
     A = jnp.where(both, A, 0) + jnp.diag(jnp.where(ok, eps * diag, 1))
     cols = _rhs(ok, nrm, vu[j] - vu[i], dist - rest, rest, rate, h, uni, slop)
-    lams = _complementarity(_dense_on, jnp.matmul, jnp.diagonal, A, cols, uni)               # [m, 1 or 2]
+    slack = _slack(uni, dist - rest) & ok
+    lams = _columns(_dense_on, jnp.matmul, jnp.diagonal, A, cols, uni, slack, h)              # [m, 1 or 2]
 
     def change(lam):
         p = nrm * lam[:, None]                                   # J^T lam: -p at i, +p at j
@@ -500,7 +517,8 @@ def _rhs(ok, nrm, u, C, rest, rate, h, uni, slop):
     `common.split_slop`: twice its rotation's steady Baumgarte error, at least share L, at most L / 10), and
     beta C where it is beyond (a position change: the exact linear correction, at Baumgarte's rate, gentler
     where J M^-1 J^T is nearly singular, as on a cloth with shear rods). A slack rope (`uni`, C < 0) has the
-    speculative bias C / h and no position change."""
+    speculative bias C / h, and in the position column what the velocity solve leaves of its slack
+    (`_columns`)."""
     rel = jnp.sum(u * nrm, -1)
     slack = _slack(uni, C)
     bias = jnp.where(slack, C / h, rate * C)
@@ -526,7 +544,8 @@ def _chain_solve(xu, vu, w, rest, rate, eps, h, uni, *, slop=None):
     zero = jnp.zeros((1,), xu.dtype)
     bands = (jnp.concatenate([zero, off]), jnp.where(ok, diag * (1 + eps), 1), jnp.concatenate([off, zero]))
     cols = _rhs(ok, nrm, vu[1:] - vu[:-1], dist - rest, rest, rate, h, uni, slop)
-    lams = _complementarity(_tridiagonal_on, _tridiagonal_mul, lambda a: a[1], bands, cols, uni)
+    lams = _columns(_tridiagonal_on, _tridiagonal_mul, lambda a: a[1], bands, cols, uni,
+                    _slack(uni, dist - rest) & ok, h)
 
     def change(lam):
         p = nrm * lam[:, None]                                     # [m, dim]
