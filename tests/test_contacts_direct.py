@@ -1,12 +1,18 @@
 """Direct with contacts (float64): PGS's contact rows swept between exact solves of the constraints (block
 Gauss-Seidel, `Direct._step_contacts`), against analytic answers (weights carried, Coulomb's incline, e^2
 bounce heights), exactness of the constraint rows while contacts push, and float64 central differences."""
+import os
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jaxcon as jc
+
+sys.path.insert(0, os.path.dirname(__file__))
+from test_contacts_solvers import _apex_ratios  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
@@ -67,13 +73,8 @@ def test_bounce_heights_follow_e_squared():
     e, h0, r = 0.8, 0.9, 0.1
 
     def ratios(model, state, solver):
-        _, traj = jc.rollout(model, state, solver, 1 / 1000, 2500)
-        y, v = np.asarray(traj.x[:, 0, 1]) - r, np.asarray(traj.v[:, 0, 1])
-        cn = np.asarray(traj.contact_n[:, 0])
-        leave = np.nonzero((cn[1:] == 0) & (cn[:-1] > 0) & (v[1:] > 0))[0] + 1
-        apex = (y[leave] + v[leave] ** 2 / (2 * G))[:4]
-        assert len(apex) == 4
-        return apex / np.concatenate([[h0], apex[:-1]]), traj
+        traj = jc.rollout(model, state, solver, 1 / 1000, 2500)[1]
+        return _apex_ratios(traj, r, h0, 4), traj
 
     ratio, traj = ratios(*_dumbbell(y=h0 + r, e=e, mu=0.0, threshold=0.01), jc.Direct())
     assert np.abs(ratio / e ** 2 - 1).max() < 1.5e-2

@@ -244,7 +244,7 @@ def path_search(cs: ContactSystem, x, x_end, h, scan, margin=None, floor=None):
     r = lax.stop_gradient(cs.radius_flat)
     if margin is not None:
         r = r + lax.stop_gradient(margin)
-    reach = 2 * (1 + GRID_SKIN) * jnp.max(r) + 2 * _spread(xe - xf)
+    reach = _reach(r, 1, _spread(xe - xf), GRID_SKIN)           # the spread of whole displacements: h = 1
     if scan is None:
         scan = _scan(cs.ct, xf, jnp.maximum(reach, floor))
     else:

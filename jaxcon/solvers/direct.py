@@ -153,62 +153,26 @@ class Direct(Solver):
         return chain and self.method != "dense" and topo.m >= _TRIDIAGONAL_FROM
 
     def _step(self, sys, x, v, lam, dt):
-        topo = sys.topology
         if sys.contact is not None:
             return self._step_contacts(sys, x, v, lam, dt)
-        if topo.has_sets:
-            return self._step_rows(sys, x, v, lam, dt)
-        tri = self._use_tridiagonal(topo)
-        dtype = x.dtype
-        beta = jnp.asarray(self.beta, dtype)
-        w = L.per_particle_out(topo, sys.w)       # user order, like the states below
-        rest = L.constraints_out(topo, sys.rest)
-        eps = _regularisation(self.regularisation, dtype)
-
-        split = self.stabilization == "split"
-        share = jnp.asarray(self.slop, dtype)
+        topo = sys.topology
 
         def substep(x, v, _lam, h):
             v = sys.apply_gravity(v, h)
             xu, vu = L.particles_out(topo, x), L.particles_out(topo, v)  # [n, dim], user order
-            solve = _chain_solve if tri else functools.partial(_dense_solve, topo=topo)
-            lam_u, dvs = solve(xu, vu, w, rest, beta / h, eps, h, _unilateral(topo), slop=share if split else None)
+            lam_u, dvs = self._exact(sys, h)(xu, vu)
             v = L.particles_in(topo, vu + dvs[0])
-            move = v if not split else v + L.particles_in(topo, dvs[1] / h)    # split: the excess's correction
+            move = v if len(dvs) < 2 else v + L.particles_in(topo, dvs[1] / h)    # split: the excess's correction
             return x + h * move, v, L.constraints_in(topo, lam_u)
 
         return substepped(substep, self.substeps, x, v, lam, dt)
-
-
-    def _step_rows(self, sys, x, v, lam, dt):
-        """The step of a model with constraint sets: every row's Jacobian assembled densely in user order
-        (`_rows_solve`); rods as above, a set's compliant rows with alpha / h^2 on their diagonal (implicit
-        springs) and bias C / h."""
-        topo = sys.topology
-        dtype = x.dtype
-        beta = jnp.asarray(self.beta, dtype)
-        w = L.per_particle_out(topo, sys.w)
-        rest = L.constraints_out(topo, sys.rest)[: topo.m_pairs]
-        eps = _regularisation(self.regularisation, dtype)
-        split = self.stabilization == "split"
-        share = jnp.asarray(self.slop, dtype)
-        sets = _user_sets(sys)
-
-        def substep(x, v, _lam, h):
-            v = sys.apply_gravity(v, h)
-            xu, vu = L.particles_out(topo, x), L.particles_out(topo, v)
-            lam_u, dvs = _rows_solve(xu, vu, w, rest, sets, topo, beta, h, eps, share if split else None)
-            v = L.particles_in(topo, vu + dvs[0])
-            move = v if not split else v + L.particles_in(topo, dvs[1] / h)
-            return x + h * move, v, L.constraints_in(topo, lam_u)
-
-        return substepped(substep, self.substeps, x, v, lam, dt)
-
 
     def _exact(self, sys, h):
         """The exact solve of every constraint row over a (sub)step of length h: (xu, vu) [n, dim], user order,
         -> (lam [m] user order, (velocity change, and with split impulses the position correction) [n, dim] user
-        order); None without constraints."""
+        order); None without constraints. Rods and ropes alone: the tridiagonal chain or dense pair solve; with
+        constraint sets, every row's Jacobian assembled densely in user order (`_rows_solve`): rods as above, a
+        set's compliant rows with alpha / h^2 on their diagonal (implicit springs) and bias C / h."""
         topo = sys.topology
         if not topo.m:
             return None
