@@ -520,11 +520,8 @@ def select_obstacles(obs: Rows, vf, h) -> Selection:
     speed = jnp.sqrt(jnp.max(L.dot0(vf, vf)))
     inside = (gap <= 2 * h * lax.stop_gradient(speed)) | obs.warm
     inside = inside.reshape(Q, n)
-    rank = L.rank_true(inside)
-    slot = jnp.where(inside & (rank < cap), rank, cap)
-    idx = jnp.full((Q, cap + 1), n, jnp.int32).at[jnp.arange(Q)[:, None], slot].set(
-        jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32), (Q, n)))
-    return Selection(idx[:, :cap], inside & (rank < cap))
+    idx, rank = L.first_true(jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32), (Q, n)), inside, cap, fill=n)
+    return Selection(idx, inside & (rank < cap))
 
 
 # ---- the restitution phases' rows -------------------------------------------------------------------------------

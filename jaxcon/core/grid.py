@@ -167,11 +167,8 @@ def _pick(partners, close):
 def _compact(j, keep, K):
     """The first K entries of each row of j [n, M] where keep [n, M]: ([n, K], -1 after the last; the number of
     kept entries beyond K, int32 scalar)."""
-    n = j.shape[0]
-    rank = L.rank_true(keep)
-    slot = jnp.where(keep & (rank < K), rank, K)
-    out = jnp.full((n, K + 1), -1, jnp.int32).at[jnp.arange(n)[:, None], slot].set(j.astype(jnp.int32))
-    return out[:, :K], jnp.sum(jnp.maximum(jnp.sum(keep, 1) - K, 0)).astype(jnp.int32)
+    out, _ = L.first_true(j, keep, K)
+    return out, jnp.sum(jnp.maximum(jnp.sum(keep, 1) - K, 0)).astype(jnp.int32)
 
 
 def _cells(xf, reach):

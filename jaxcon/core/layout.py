@@ -537,6 +537,16 @@ def rank_true(keep):
     return (before[:, :, None] + within.astype(jnp.int32)).reshape(n, W * 32)[:, :M]
 
 
+def first_true(j, keep, K: int, fill: int = -1):
+    """The first K entries of each row of j [n, M] where keep [n, M] (bool), in order, `fill` after the last:
+    ([n, K] int32, each entry's rank among its row's kept entries [n, M] (`rank_true`))."""
+    n = j.shape[0]
+    rank = rank_true(keep)
+    slot = jnp.where(keep & (rank < K), rank, K)
+    out = jnp.full((n, K + 1), fill, jnp.int32).at[jnp.arange(n)[:, None], slot].set(j.astype(jnp.int32))
+    return out[:, :K], rank
+
+
 def safe_reciprocal(a):
     """1/a where a > 0, else 0 (and a zero derivative there)."""
     ok = a > 0
