@@ -1,4 +1,7 @@
 """The neighbour grid for particle-particle contacts (collide="grid", or collide=True above MAX_ALL_PAIRS_PARTICLES (256))."""
+import os
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -6,6 +9,9 @@ import pytest
 
 import jaxcon as jc
 from jaxcon.core.contact import MAX_ALL_PAIRS_PARTICLES
+
+sys.path.insert(0, os.path.dirname(__file__))
+from test_contacts_grid_solvers import _pile as _pile_3d  # noqa: E402  12 balls in 3 layers (with dim=3)
 
 jax.config.update("jax_enable_x64", True)
 
@@ -318,15 +324,6 @@ def _count_reuse(monkeypatch, mode="keep"):
 _NO_REUSE = jc.core.contact.no_reuse
 
 
-def _balls_3d():
-    rng = np.random.default_rng(0)
-    x = np.array([[R + 0.03 + a * 0.11 + (l % 2) * 0.03, R + 0.03 + b * 0.11 + (l % 2) * 0.03, R + 0.01 + 0.12 * l]
-                  for l in range(3) for a in range(2) for b in range(2)]) + rng.uniform(-0.003, 0.003, (12, 3))
-    planes = [([0.0, 0.0, 1.0], 0.0), ([1.0, 0.0, 0.0], 0.0), ([-1.0, 0.0, 0.0], -0.3),
-              ([0.0, 1.0, 0.0], 0.0), ([0.0, -1.0, 0.0], -0.3)]
-    return jc.build(x, np.ones(12), radius=R, collide="grid", planes=planes, friction=0.3)
-
-
 def _mixed_radii():
     """A lattice of small discs and one disc 3.2 times larger: cells sized by the large one hold many small
     ones, and the wider list's cells overflow their buckets' scan (a review's case)."""
@@ -355,7 +352,7 @@ def test_kept_candidate_lists_change_no_result(case, monkeypatch):
         model, state = _mixed_radii()
         steps = 120
     else:
-        model, state = _balls_3d()
+        model, state = _pile_3d("grid", dim=3)
         solver, dt, steps = jc.XPBD(2, substeps=2), 1 / 120, 200
     runs = {}
     for mode in ("keep", "search", "plain"):
