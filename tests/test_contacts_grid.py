@@ -281,7 +281,7 @@ def test_contact_passes_sets_the_position_pass_count():
         return overlap(x), x
 
     assert overlap(np.asarray(state.x)) > 0.13
-    (ov_default, x_default), (ov_all, x_all) = (deepest(jc.PGS(10)),
+    (ov_default, x_default), (_, x_all) = (deepest(jc.PGS(10)),
                                                 deepest(jc.PGS(10, contact_passes=contact.GRID_OVERLAP_PASSES)))
     ov_one, _ = deepest(jc.PGS(10, contact_passes=1))
     assert np.array_equal(x_default, x_all)

@@ -271,24 +271,61 @@ class RoundBlock:
 class SlotBlock:
     """A grid model's pair rows, [..., n, K] leaves, with their `partners` [n, K]: slot by slot in a `lax.scan`;
     a slot no particle uses (the grid fills each particle's slots from the first, so the last ones are often empty
-    everywhere) is skipped."""
+    everywhere) is skipped. `major`: the multipliers (the second half of the rows) are slot-major already,
+    [K, ..., n] (`in_solve`), and come back that way."""
 
-    def __init__(self, partners):
-        self.partners = partners
+    def __init__(self, partners, major: bool = False):
+        self.partners, self.major = partners, major
 
     def each(self, fn, carry, rows):
         def body(carry, x):
             j, (data, lam) = x
             return lax.cond(jnp.any(j >= 0), lambda c: fn(c, SlotColour(j), (data, lam)), lambda c: (c, lam), carry)
 
-        xs = (jnp.moveaxis(self.partners, -1, 0), jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), rows))
-        carry, out = lax.scan(body, carry, xs)
+        def first(a):
+            return jnp.moveaxis(a, -1, 0)
+
+        if self.major:
+            data, lam = rows
+            return lax.scan(body, carry, (first(self.partners), (jax.tree.map(first, data), lam)))
+        carry, out = lax.scan(body, carry, (first(self.partners), jax.tree.map(first, rows)))
         return carry, jax.tree.map(lambda a: jnp.moveaxis(a, 0, -1), out)
 
 
-def pair_block(ct: ContactTopology, partners=None):
-    """The pair rows' block: a grid model's slots (its `partners` [n, K]), else the listed pairs' rounds."""
-    return SlotBlock(partners) if partners is not None else RoundBlock(ct)
+def pair_block(ct: ContactTopology, partners=None, major: bool = False):
+    """The pair rows' block: a grid model's slots (its `partners` [n, K]; `major`: `SlotBlock`), else the listed
+    pairs' rounds."""
+    return SlotBlock(partners, major) if partners is not None else RoundBlock(ct)
+
+
+# ---- a grid's pair impulses inside a velocity solve -------------------------------------------------------------
+# A grid model's pair impulses are [..., n, K] (a particle's K slots side by side), the layout of its rows and
+# partners, which the search, the warm start and the position pass use. A sweep updates them slot by slot, and
+# moving them slot-major and back in every sweep cost more than moving them once per solve: `solve_phases` does
+# that (`in_solve`, `impulses_slot_major`) and moves them back after (`impulses_slot_minor`). The rows, which do
+# not change within the solve, stay as they are: moving them once too made the step no faster (XLA then laid out
+# the arrays they are made from slot-major as well, and the rows and the warm start took longer; docs/contacts.md).
+
+
+def in_solve(pairs: Rows) -> Rows:
+    """A grid's pair rows inside a velocity solve whose pair impulses are slot-major (`impulses_slot_major`): `i`
+    None, which `is_in_solve` tests, and `j` as it is."""
+    return pairs._replace(i=None)
+
+
+def is_in_solve(pairs: Rows) -> bool:
+    """Whether these are a grid's pair rows marked by `in_solve`."""
+    return pairs.i is None and pairs.j is not None
+
+
+def impulses_slot_major(imp: Impulses) -> Impulses:
+    """A grid model's pair impulses with the slot axis first (pair_n [K, n], pair_t [K, dim, n])."""
+    return imp._replace(pair_n=jnp.moveaxis(imp.pair_n, -1, 0), pair_t=jnp.moveaxis(imp.pair_t, -1, 0))
+
+
+def impulses_slot_minor(imp: Impulses) -> Impulses:
+    """`impulses_slot_major` undone: pair_n [n, K], pair_t [dim, n, K]."""
+    return imp._replace(pair_n=jnp.moveaxis(imp.pair_n, 0, -1), pair_t=jnp.moveaxis(imp.pair_t, 0, -1))
 
 
 # ---- rows ------------------------------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from jaxcon.core import contact_rows
-from jaxcon.core.contact import zero_impulses
+from jaxcon.core.contact import Impulses, zero_impulses
 from jaxcon.core import grid
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
@@ -498,16 +498,23 @@ def with_found(imp, found):
     return imp if found is None else imp._replace(partners=found[0], overflow=found[1])
 
 
-def solve_phases(sys, v_free, obs, pairs, iterations: int, carry, body):
+def solve_phases(sys, v_free, obs, pairs, iterations: int, carry, body, slot_major: bool = False):
     """The velocity solve, `iterations` of `body(obs, pairs)`, which returns one iteration carry = (v, ...) ->
     carry. A model without contacts runs them in one loop. With contacts it runs in two phases sharing the
     iterations (at least one each): compression (every target without restitution), then restitution,
     continued from it; the restitution phase's change is scaled back where it would raise the kinetic energy
     (contact.restitution_scale). One loop, whose rows switch targets between the phases, so the iteration is
-    traced and compiled once. Returns the carry mixed leaf by leaf."""
+    traced and compiled once. Returns the carry mixed leaf by leaf.
+
+    `slot_major`: `body` reads a grid's pair rows only through `contact.sweep`, so the carry's pair impulses are
+    moved slot-major once here (`contact_rows.in_solve`) rather than in every sweep, and back."""
     if sys.contact is None:
         one_iteration = body(None, None)
         return lax.fori_loop(0, iterations, lambda _, c: one_iteration(c), carry)
+    if slot_major and pairs is not None and pairs.i is not None:
+        out = solve_phases(sys, v_free, obs, contact_rows.in_solve(pairs), iterations,
+                           _on_impulses(contact_rows.impulses_slot_major, carry), body)
+        return _on_impulses(contact_rows.impulses_slot_minor, out)
     first = max(iterations // 2, 1)
     total = first + max(iterations - first, 1)
 
@@ -528,6 +535,13 @@ def solve_phases(sys, v_free, obs, pairs, iterations: int, carry, body):
         return a + s * (b - a) if jnp.issubdtype(a.dtype, jnp.floating) else b
 
     return jax.tree.map(mix, compressed, bounced)
+
+
+def _on_impulses(fn, tree):
+    """`tree` with fn applied to each of its contact `Impulses`."""
+    def is_imp(a):
+        return isinstance(a, Impulses)
+    return jax.tree.map(lambda a: fn(a) if is_imp(a) else a, tree, is_leaf=is_imp)
 
 
 def step_end(sys, x, v, v_free, obs, pairs, imp, h, passes=1, rods_pass=None, contact_slop=0.0):

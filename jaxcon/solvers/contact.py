@@ -26,6 +26,7 @@ from jaxcon.core.contact_rows import (
     ObstacleColour,
     Rows,
     direction,
+    is_in_solve,
     dot as _dot,
     length as _length,
     obstacle_gap,
@@ -153,7 +154,8 @@ def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impuls
     pn, pt = imp.pair_n, imp.pair_t
     if pairs is not None:
         dim, shape = v.shape[0], v.shape
-        block = pair_block(cs.ct, pairs.j if pairs.i is not None else None)
+        major = is_in_solve(pairs)
+        block = pair_block(cs.ct, pairs.j if major or pairs.i is not None else None, major)
         vf, (pn, pt) = L.each_colour(block, colour(w.reshape(-1)), v.reshape(dim, -1), ((pairs, soft[1]), (pn, pt)))
         v = vf.reshape(shape)
     return v, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)

@@ -219,7 +219,8 @@ class Direct(Solver):
                 return sweep
 
             start = project(b.v, (jnp.zeros_like(xu),)) + (b.imp,)
-            v, lam_u, dvs, imp = solve_phases(sys, b.v_free, b.obs, b.pairs, self.contact_iterations, start, sweeps)
+            v, lam_u, dvs, imp = solve_phases(sys, b.v_free, b.obs, b.pairs, self.contact_iterations, start, sweeps,
+                                              slot_major=True)
             # the restitution guard mixes the two phases' ends: exact for rods (the rows are linear), not for a
             # unilateral row whose activity differs between them, so the constraints are solved once more
             v, lam_u, dvs = project(v, dvs)

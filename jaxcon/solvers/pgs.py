@@ -163,7 +163,8 @@ class PGS(Solver):
                     return v, lam, imp
                 return sweep
 
-            v, lam, imp = solve_phases(sys, b.v_free, b.obs, b.pairs, self.iterations, (v, lam, imp), sweeps)
+            v, lam, imp = solve_phases(sys, b.v_free, b.obs, b.pairs, self.iterations, (v, lam, imp), sweeps,
+                                       slot_major=True)
         rods_pass = (lambda x: split_position_pass(sys, x, self.iterations, b.slop)) if split and b.fr else None
         x = step_end(sys, x, v, b.v_free, b.obs, b.pairs, imp, h, passes=self.contact_passes, rods_pass=rods_pass,
                      contact_slop=contact_slop)
