@@ -373,3 +373,41 @@ def test_kept_candidate_lists_change_no_result(case, monkeypatch):
     for other in ("search", "plain"):
         for a, b in zip(jax.tree.leaves((final, traj)), jax.tree.leaves(runs[other][1:])):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.parametrize("solver", [jc.PGS(10), jc.PGS(6, substeps=2), jc.Direct()], ids=["PGS", "PGS substeps", "Direct"])
+@pytest.mark.parametrize("n", [8, 36])
+def test_slot_major_impulses_change_no_result(solver, n, monkeypatch):
+    """PGS and Direct move a grid's pair impulses slot-major ([K, n]) once per velocity solve
+    (`solve_phases(slot_major=True)`, `contact_rows.in_solve`) instead of in every sweep. The rollout equals
+    the one that moves them in every sweep, impulses and partners included, in float64. With 8 discs and 8
+    slots both layouts have the same shape, so an impulse read in the wrong layout would not raise: it would
+    change the result. Dumbbells (rods) with Direct, so that its exact solve runs between the sweeps.
+
+    Six steps: both programs do the same arithmetic, but XLA's CPU backend may contract it into fused
+    multiply-adds differently in the two programs (under the suite's XLA flags the 36-disc pile's positions
+    differ by 1e-15 after six steps, and by 4e-7 after nine, where a contact switches; under the default flags
+    they are bitwise equal for 60 steps). A wrong layout changes the first step's impulses by O(1)."""
+    from jaxcon.solvers import direct, pgs
+    x = _discs(n // 4, 4, jitter=0.004, seed=1, gap=0.0)
+    rods = np.arange(n).reshape(-1, 2) if isinstance(solver, jc.Direct) else None
+    v = np.stack([np.linspace(-0.5, 0.5, n), np.zeros(n)], -1)
+    model, state = jc.build(x, np.linspace(1.0, 2.0, n), velocities=v, radius=R, collide="grid", planes=BOX,
+                            friction=0.4, max_neighbours=8, rods=rods)
+    runs = []
+    for major in (True, False):
+        for module in (pgs, direct):
+            if not major:
+                original = module.solve_phases
+                monkeypatch.setattr(module, "solve_phases",
+                                    lambda *a, slot_major=False, original=original, **k: original(*a, **k))
+        jax.clear_caches()
+        runs.append(jc.rollout(model, state, solver, 1 / 60, 6))
+        monkeypatch.undo()
+    jax.clear_caches()
+    (final, traj), other = runs
+    assert traj.x.dtype == jnp.float64
+    assert float(jnp.max(traj.contact_n[:, 3 * n:])) > 1e-3           # the pairs push from the first steps
+    assert int(jnp.max(traj.contact_partners)) >= 0
+    for a, b in zip(jax.tree.leaves((final, traj)), jax.tree.leaves(other)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)
