@@ -26,14 +26,15 @@ from jaxcon.core.contact_rows import (
     ObstacleColour,
     Rows,
     direction,
-    is_in_solve,
     dot as _dot,
+    is_in_solve,
     length as _length,
     obstacle_gap,
     overlap_normal,
     pair_block,
     pair_index,
     pair_total,
+    slot_rows,
     velocity_rows,
 )
 
@@ -430,9 +431,12 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
                 P = n * (over * L.safe_reciprocal(c.both(wf)) * c.valid)
             return c.apply(wf, xf, P), None
 
-        block = pair_block(ct, None if pairs is None or pairs.i is None else pairs.j)
-        kk = None if pairs is None or pairs.i is None else pairs.k
         return L.each_colour(block, colour, x.reshape(dim, -1), (kk, None))[0].reshape(shape)
+
+    if pairs is not None and pairs.i is not None:          # a grid's slots, read by every pass: moved once
+        block, kk = slot_rows(pairs.j, pairs.k)
+    else:
+        block, kk = pair_block(ct), None
 
     def one_pass(_, x):
         if ct.n_pairs or ct.has_grid:
