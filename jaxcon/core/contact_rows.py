@@ -317,8 +317,8 @@ def pair_block(ct: ContactTopology, partners=None, major: bool = False):
 # partners, which the search, the warm start and the position pass use. A sweep updates them slot by slot, and
 # moving them slot-major and back in every sweep cost more than moving them once per solve: `solve_phases` does
 # that (`in_solve`, `impulses_slot_major`) and moves them back after (`impulses_slot_minor`). The rows, which do
-# not change within the solve, stay as they are: moving them once too made the step no faster (XLA then laid out
-# the arrays they are made from slot-major as well, and the rows and the warm start took longer; docs/contacts.md).
+# not change within the solve, stay as they are: moving them once too made the sweeps cheaper but the step no
+# faster, as the rows and the warm start took longer (probably XLA's layout assignment; docs/contacts.md).
 
 
 def in_solve(pairs: Rows) -> Rows:
