@@ -375,8 +375,8 @@ def test_kept_candidate_lists_change_no_result(case, monkeypatch):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-@pytest.mark.parametrize("solver", [jc.PGS(10), jc.PGS(6, substeps=2), jc.Direct()], ids=["PGS", "PGS substeps", "Direct"])
-@pytest.mark.parametrize("n", [8, 36])
+@pytest.mark.parametrize("solver, n", [(jc.PGS(10), 8), (jc.PGS(6, substeps=2), 8), (jc.Direct(), 8), (jc.PGS(10), 36)],
+                         ids=["PGS-8", "PGS substeps-8", "Direct-8", "PGS-36"])
 def test_slot_major_impulses_change_no_result(solver, n, monkeypatch):
     """PGS and Direct move a grid's pair impulses slot-major ([K, n]) once per velocity solve
     (`solve_phases(slot_major=True)`, `contact_rows.in_solve`) instead of in every sweep. The rollout equals
