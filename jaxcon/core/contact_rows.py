@@ -283,16 +283,24 @@ class SlotBlock:
             j, (data, lam) = x
             return lax.cond(jnp.any(j >= 0), lambda c: fn(c, SlotColour(j), (data, lam)), lambda c: (c, lam), carry)
 
-        def first(a):
-            return jnp.moveaxis(a, -1, 0)
-
         data, lam = rows
+        partners = self.partners
         if not self.rows_major:
-            data = jax.tree.map(first, data)
-        xs = (self.partners if self.rows_major else first(self.partners), (data, lam if self.major else
-                                                                               jax.tree.map(first, lam)))
-        carry, out = lax.scan(body, carry, xs)
-        return carry, out if self.major else jax.tree.map(lambda a: jnp.moveaxis(a, 0, -1), out)
+            partners, data = _slots_first(partners), jax.tree.map(_slots_first, data)
+        if not self.major:
+            lam = jax.tree.map(_slots_first, lam)
+        carry, out = lax.scan(body, carry, (partners, (data, lam)))
+        return carry, out if self.major else jax.tree.map(_slots_last, out)
+
+
+def _slots_first(a):
+    """A grid's [..., n, K] leaf slot-major, [K, ..., n]."""
+    return jnp.moveaxis(a, -1, 0)
+
+
+def _slots_last(a):
+    """`_slots_first` undone: [K, ..., n] -> [..., n, K]."""
+    return jnp.moveaxis(a, 0, -1)
 
 
 def slot_rows(partners, data):
@@ -300,10 +308,7 @@ def slot_rows(partners, data):
     them so (`SlotBlock(rows_major=True)`): for the position pass, whose up to `GRID_OVERLAP_PASSES` passes read
     the same rows. Moving them in each pass made a pass of the 4096-disc box about a fifth dearer (0.24 against
     0.19 ms; docs/contacts.md)."""
-    def first(a):
-        return jnp.moveaxis(a, -1, 0)
-
-    return SlotBlock(first(partners), rows_major=True), jax.tree.map(first, data)
+    return SlotBlock(_slots_first(partners), rows_major=True), jax.tree.map(_slots_first, data)
 
 
 def pair_block(ct: ContactTopology, partners=None, major: bool = False):
@@ -334,12 +339,12 @@ def is_in_solve(pairs: Rows) -> bool:
 
 def impulses_slot_major(imp: Impulses) -> Impulses:
     """A grid model's pair impulses with the slot axis first (pair_n [K, n], pair_t [K, dim, n])."""
-    return imp._replace(pair_n=jnp.moveaxis(imp.pair_n, -1, 0), pair_t=jnp.moveaxis(imp.pair_t, -1, 0))
+    return imp._replace(pair_n=_slots_first(imp.pair_n), pair_t=_slots_first(imp.pair_t))
 
 
 def impulses_slot_minor(imp: Impulses) -> Impulses:
     """`impulses_slot_major` undone: pair_n [n, K], pair_t [dim, n, K]."""
-    return imp._replace(pair_n=jnp.moveaxis(imp.pair_n, 0, -1), pair_t=jnp.moveaxis(imp.pair_t, 0, -1))
+    return imp._replace(pair_n=_slots_last(imp.pair_n), pair_t=_slots_last(imp.pair_t))
 
 
 # ---- rows ------------------------------------------------------------------------------------------------------

@@ -155,8 +155,7 @@ def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impuls
     pn, pt = imp.pair_n, imp.pair_t
     if pairs is not None:
         dim, shape = v.shape[0], v.shape
-        major = is_in_solve(pairs)
-        block = pair_block(cs.ct, pairs.j if major or pairs.i is not None else None, major)
+        block = pair_block(cs.ct, pairs.j, is_in_solve(pairs))      # j: a grid's partners, None for listed pairs
         vf, (pn, pt) = L.each_colour(block, colour(w.reshape(-1)), v.reshape(dim, -1), ((pairs, soft[1]), (pn, pt)))
         v = vf.reshape(shape)
     return v, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)

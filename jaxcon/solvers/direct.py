@@ -2,16 +2,13 @@
 from __future__ import annotations
 
 import functools
+from typing import Any, Optional
 
 import jax
-from typing import Any
-
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jax.lax.linalg import tridiagonal_solve
-
-from typing import Optional
 
 from jaxcon.core import contact_rows
 from jaxcon.core import layout as L
