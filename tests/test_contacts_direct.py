@@ -1,5 +1,5 @@
 """Direct with contacts (float64): PGS's contact rows swept between exact solves of the constraints (block
-Gauss-Seidel, `Direct._step_contacts`), against analytic answers (weights carried, Coulomb's incline, e^2
+Gauss-Seidel, `Direct._substep`), against analytic answers (weights carried, Coulomb's incline, e^2
 bounce heights), exactness of the constraint rows while contacts push, and float64 central differences."""
 import os
 import sys

@@ -15,7 +15,6 @@ from jaxcon.core import layout as L
 from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
-from jaxcon.core.substeps import substepped
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact
 from jaxcon.solvers.common import (check_stabilization, run_substeps, solve_phases, split_contacts, step_begin,
@@ -150,19 +149,7 @@ class Direct(Solver):
         return chain and self.method != "dense" and topo.m >= _TRIDIAGONAL_FROM
 
     def _step(self, sys, x, v, lam, dt):
-        if sys.contact is not None:
-            return self._step_contacts(sys, x, v, lam, dt)
-        topo = sys.topology
-
-        def substep(x, v, _lam, h):
-            v = sys.apply_gravity(v, h)
-            xu, vu = L.particles_out(topo, x), L.particles_out(topo, v)  # [n, dim], user order
-            lam_u, dvs = self._exact(sys, h)(xu, vu)
-            v = L.particles_in(topo, vu + dvs[0])
-            move = v if len(dvs) < 2 else v + L.particles_in(topo, dvs[1] / h)    # split: the excess's correction
-            return x + h * move, v, L.constraints_in(topo, lam_u)
-
-        return substepped(substep, self.substeps, x, v, lam, dt)
+        return run_substeps(sys, functools.partial(self._substep, sys), self.substeps, x, v, lam, dt)
 
     def _exact(self, sys, h):
         """The exact solve of every constraint row over a (sub)step of length h: (xu, vu) [n, dim], user order,
@@ -185,29 +172,33 @@ class Direct(Solver):
         solve = _chain_solve if self._use_tridiagonal(topo) else functools.partial(_dense_solve, topo=topo)
         return lambda xu, vu: solve(xu, vu, w, rest, beta / h, eps, h, _unilateral(topo), slop=slop)
 
-    def _step_contacts(self, sys, x, v, lam, dt):
-        """The step of a model with contacts: the contact kind's stages as in `PGS` (`common.step_begin`,
-        `solve_phases`, `step_end`), its sweeps alternating with the exact solve of the constraints (class
-        docstring)."""
+    def _substep(self, sys, x, v, lam_ws, h, found=None):
+        """One (sub)step for every model: gravity, the exact solve of every constraint row (no warm start: the
+        solve is exact), and x += h v (with split impulses, plus the last solve's position correction). With
+        contacts, the contact kind's stages as in `PGS` (`common.step_begin`, `solve_phases`, `step_end`; a grid
+        model's candidate pairs `found` from `grid_substepped`), their sweeps alternating with the exact solve
+        (class docstring). Without contacts the solve runs once, and the positions are those of the step
+        before contacts existed."""
         topo, cs = sys.topology, sys.contact
         dtype = x.dtype
-        beta = jnp.asarray(self.beta, dtype)
         slop = jnp.asarray(self.contact_slop, dtype)
+        blocks, imp_ws = split_contacts(sys, lam_ws)
+        cold = with_contacts(sys, jax.tree.map(jnp.zeros_like, blocks), imp_ws)      # no constraint warm start
+        b = step_begin(sys, x, v, cold, jnp.asarray(self.beta, dtype), h, None, cs is not None, 1.0, True, found,
+                       slop)
+        exact, xu = self._exact(sys, h), L.particles_out(topo, x)
 
-        def substep(x, v, lam_ws, h, found=None):
-            blocks, imp_ws = split_contacts(sys, lam_ws)
-            cold = with_contacts(sys, jax.tree.map(jnp.zeros_like, blocks), imp_ws)     # no constraint warm start
-            b = step_begin(sys, x, v, cold, beta, h, None, True, 1.0, True, found, slop)
-            exact, xu = self._exact(sys, h), L.particles_out(topo, x)
+        def project(v, dvs):
+            """v less the last exact solve's velocity change dvs[0], solved again: (v, lam, dvs)."""
+            if exact is None:
+                return v, None, dvs
+            free = L.particles_out(topo, v) - dvs[0]
+            lam_u, dvs = exact(xu, free)
+            return L.particles_in(topo, free + dvs[0]), lam_u, dvs
 
-            def project(v, dvs):
-                """v less the last exact solve's velocity change dvs[0], solved again: (v, lam, dvs)."""
-                if exact is None:
-                    return v, None, dvs
-                free = L.particles_out(topo, v) - dvs[0]
-                lam_u, dvs = exact(xu, free)
-                return L.particles_in(topo, free + dvs[0]), lam_u, dvs
-
+        v, lam_u, dvs = project(b.v, (jnp.zeros_like(xu),))
+        imp = b.imp
+        if cs is not None:
             def sweeps(obs, pairs):
                 def sweep(carry):
                     v, lam_u, dvs, imp = carry
@@ -215,19 +206,19 @@ class Direct(Solver):
                     return project(v, dvs) + (imp,)
                 return sweep
 
-            start = project(b.v, (jnp.zeros_like(xu),)) + (b.imp,)
-            v, lam_u, dvs, imp = solve_phases(sys, b.v_free, b.obs, b.pairs, self.contact_iterations, start, sweeps,
-                                              slot_major=True)
+            v, lam_u, dvs, imp = solve_phases(sys, b.v_free, b.obs, b.pairs, self.contact_iterations,
+                                              (v, lam_u, dvs, imp), sweeps, slot_major=True)
             # the restitution guard mixes the two phases' ends: exact for rods (the rows are linear), not for a
             # unilateral row whose activity differs between them, so the constraints are solved once more
             v, lam_u, dvs = project(v, dvs)
-            moved = None if len(dvs) < 2 else (lambda x: x + L.particles_in(topo, dvs[1]))   # split: correction
-            x = step_end(sys, x, v, b.v_free, b.obs, b.pairs, imp, h, passes=self.contact_passes, rods_pass=moved,
-                         contact_slop=slop)
-            lam = b.lam if lam_u is None else L.constraints_in(topo, lam_u)
-            return x, v, with_contacts(sys, lam, imp)
-
-        return run_substeps(sys, substep, self.substeps, x, v, lam, dt)
+        lam = b.lam if lam_u is None else L.constraints_in(topo, lam_u)
+        if cs is None:              # split impulses: the excess's correction, as a velocity over the step
+            move = v if len(dvs) < 2 else v + L.particles_in(topo, dvs[1] / h)
+            return x + h * move, v, lam
+        moved = None if len(dvs) < 2 else (lambda x: x + L.particles_in(topo, dvs[1]))
+        x = step_end(sys, x, v, b.v_free, b.obs, b.pairs, imp, h, passes=self.contact_passes, rods_pass=moved,
+                     contact_slop=slop)
+        return x, v, with_contacts(sys, lam, imp)
 
 
 def _user_sets(sys):

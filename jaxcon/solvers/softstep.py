@@ -8,15 +8,13 @@ from typing import Any
 import jax.numpy as jnp
 from jax import lax
 
-from jaxcon.core import contact_rows
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
 from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact
-from jaxcon.solvers.common import (apply_impulses, frames, run_substeps,
-                                   split_contacts, warm_rows, with_contacts, with_found)
+from jaxcon.solvers.common import frames, run_substeps, step_begin, with_contacts
 
 
 def soft_coefficients(hertz, damping_ratio, h):
@@ -133,26 +131,18 @@ class SoftStep(Solver):
         model's step goes through `grid_substepped`, which calls this with its candidate pairs `found`."""
         dtype = x.dtype
         topo, cs, w = sys.topology, sys.contact, sys.w
-        lam, imp = split_contacts(sys, lam)
         bias_rate, mass_scale, impulse_scale = soft_coefficients(jnp.asarray(self.hertz, dtype),
                                                                  jnp.asarray(self.damping_ratio, dtype), h)
-        v0, v = v, sys.apply_gravity(v, h)
-        v_free = v
-        fr = frames(sys, x)
-        lam = tuple(R.clamp(blk, warm_rows(f, l, h)) * (f.k > 0).astype(l.dtype)
-                    for blk, f, l in zip(topo.blocks, fr, lam))
-        v = apply_impulses(sys, v, fr, lam)
-        obs = pairs = solve_obs = solve_pairs = None
+        zero = jnp.zeros((), dtype)            # no Baumgarte term: the contacts' rows are speculative or soft
+        b = step_begin(sys, x, v, lam, zero, h, None, True, found=found)
+        v_free, v, fr, lam, obs, pairs, imp = b.v_free, b.v, b.fr, b.lam, b.obs, b.pairs, b.imp
+        solve_obs = solve_pairs = None
         softness = (None, None)
         if cs is not None:
             hz = (jnp.minimum(jnp.asarray(30.0, dtype), 0.25 / h) if self.contact_hertz is None
                   else jnp.asarray(self.contact_hertz, dtype))
             zeta = jnp.asarray(self.contact_damping_ratio, dtype)
             push = jnp.asarray(self.contact_push_velocity, dtype)
-            obs, pairs = contact_rows.rows(cs, w, x, v0, v_free, jnp.zeros((), dtype), h,
-                                      None if found is None else found[0])
-            v, imp = contact.warm_start(cs, w, v, obs, pairs, imp)
-            imp = with_found(imp, found)
             solve_obs, obs_soft = contact.soft_rows(obs, soft_coefficients(2 * hz, zeta, h), push)  # static bodies
             solve_pairs, pair_soft = contact.soft_rows(pairs, soft_coefficients(hz, zeta, h), push)
             softness = (obs_soft, pair_soft)
