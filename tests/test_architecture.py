@@ -107,6 +107,26 @@ def test_the_import_graph_counts_imports_inside_functions(tmp_path):
     assert found == {"jaxcon.solvers.contact"}
 
 
+#: The contact system's obstacle-shape leaves and counts: only `core` may read them.
+_SHAPE_NAMES = {"plane_normal", "plane_offset", "sphere_centre", "sphere_radius", "n_planes", "n_spheres"}
+
+
+def test_solvers_know_no_obstacle_shape():
+    """Obstacle shapes (planes, spheres) are the contact kind's, in `core` (`contact_rows.obstacle_gap`, the rows):
+    no module under `jaxcon/solvers` reads a shape's leaves or counts, so a new shape changes no solver. Code
+    only: names in docstrings and comments do not count."""
+    bad = []
+    for name, (path, tree) in _modules().items():
+        if not name.startswith("jaxcon.solvers"):
+            continue
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute) and node.attr in _SHAPE_NAMES:
+                bad.append(f"{name}:{node.lineno} .{node.attr}")
+    assert not bad, bad
+    probe = ast.parse("def f(cs, q):\n    return cs.plane_normal[q]\n")      # the check sees an attribute read
+    assert any(isinstance(n, ast.Attribute) and n.attr in _SHAPE_NAMES for n in ast.walk(probe))
+
+
 def test_no_function_longer_than_100_lines():
     long = []
     for name, (path, tree) in _modules().items():

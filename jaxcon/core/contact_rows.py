@@ -624,6 +624,14 @@ def obstacle_gap(cs: ContactSystem, q: int, p, x=None):
     return nrm, dist - cs.sphere_radius[s] - r
 
 
+def obstacle_size(cs: ContactSystem, q: int):
+    """A size of obstacle q's parameters for a rounding tolerance (`tolerance`) at position level: the sum of
+    the absolute components of a plane's normal, or of a sphere's centre."""
+    if q < cs.ct.n_planes:
+        return jnp.sum(jnp.abs(cs.plane_normal[q]))
+    return jnp.sum(jnp.abs(cs.sphere_centre[q - cs.ct.n_planes]))
+
+
 def _bounce_target(cs: ContactSystem, vn_before):
     """Restitution target of the velocity pass: max(-e vn_before, 0), e = 0 at or below the threshold."""
     e = jnp.where(jnp.abs(vn_before) > cs.threshold, cs.restitution, 0)

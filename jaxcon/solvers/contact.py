@@ -406,14 +406,8 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
     k = L.safe_reciprocal(w[0])
 
     def obstacles(x):
-        for p in range(ct.n_planes):
-            nrm = cs.plane_normal[p].reshape((dim,) + (1,) * (x.ndim - 1))
-            C = jnp.sum(nrm * x, 0) - cs.plane_offset[p] - r
-            x = x + nrm * (jnp.maximum(-C - slop * r, 0) * (k > 0))
-        for q in range(ct.n_spheres):
-            d = x - cs.sphere_centre[q].reshape((dim,) + (1,) * (x.ndim - 1))
-            dist, n = direction(d)
-            C = dist - cs.sphere_radius[q] - r
+        for q in range(ct.n_obstacles):          # planes, then spheres
+            n, C = obstacle_gap(cs, q, x)
             x = x + n * (jnp.maximum(-C - slop * r, 0) * (k > 0))
         return x
 

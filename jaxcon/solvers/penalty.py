@@ -351,8 +351,7 @@ def _start_overlaps(cs, w, x, v, prev, h, k, c, partners=None):
         size = jnp.sum(jnp.abs(x), 0) + r
         for q in range(ct.n_obstacles):
             n, C = contact_rows.obstacle_gap(cs, q, x)
-            tol = contact_rows.tolerance(size + jnp.sum(jnp.abs(cs.plane_normal[q] if q < ct.n_planes else
-                                                              cs.sphere_centre[q - ct.n_planes])))
+            tol = contact_rows.tolerance(size + contact_rows.obstacle_size(cs, q))
             x = x + n * _excess(C, jnp.sum(n * v, 0), m, prev.obs_n[q], h, k, c, two_zeta, tol)
     if ct.n_pairs or ct.has_grid:
         xf, vf, wf, rf = x.reshape(dim, -1), v.reshape(dim, -1), w.reshape(-1), cs.radius_flat
