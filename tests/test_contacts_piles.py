@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import jaxcon as jc
+from jaxcon.bench import contacts as bench
 from jaxcon.bench.contacts import deepest_overlap
 
 
@@ -26,6 +27,29 @@ def test_disc_box_of_256_comes_to_rest_with_little_overlap():
     # the discs stay in the box
     x = np.asarray(final.x)
     assert x[:, 1].min() > R * 0.95 and x[:, 0].min() > R * 0.95 and x[:, 0].max() < width - R * 0.95
+
+
+def test_contact_bench_takes_turns_and_pairs_chunks():
+    """`python -m jaxcon bench --contacts` advances its engines chunk by chunk in turn, so a stretch of a busy
+    host falls on both sides of a ratio, and its ratios are the median of the chunk-by-chunk quotients.
+    jaxcon's engine runs and records its chunks."""
+    order = []
+
+    def engine(name, times):
+        run = bench._Run(name, "")
+
+        def chunk(k):
+            order.append((name, k))
+            run.chunks.append(times[k])
+        return run, chunk
+
+    # a busy stretch (chunks 1 to 3) makes every chunk 3x slower, a's and b's alike
+    a, b = bench._drive([engine("a", [1, 3, 3, 3, 1]), engine("b", [2, 6, 6, 6, 2])], 5 * bench.CHUNK * bench.DT)
+    assert order == [(name, k) for k in range(5) for name in "ab"]
+    assert bench.paired_ratio(a, b) == 0.5
+    run = bench.run_jaxcon(16, seconds=2 * bench.CHUNK * bench.DT)
+    assert len(run.chunks) == 2 and all(t > 0 for t in run.chunks) and run.compile_s > 0
+    assert 0 <= run.overlap_max < 0.05
 
 
 def test_disc_box_layout_starts_apart_inside_the_box():

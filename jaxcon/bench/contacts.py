@@ -16,9 +16,11 @@ N discs (R = 0.5 m, 1 kg, friction 0.5, restitution 0) in staggered rows 1 m abo
 
 pymunk's and Box2D's discs rotate (they are rigid bodies); jaxcon's are particles. Every engine is stepped in
 chunks of `CHUNK` steps (jaxcon: one compiled rollout of CHUNK steps, called again and again; the others: a
-Python loop of `step` calls); the cost is the median over the chunks of a chunk's wall time per step, after
-compilation, and jaxcon's compile time (lower + compile of that rollout, with the grid's search and solve) is
-reported apart. At 4 s and 8 s: the fastest disc's speed (m/s; "rest" is below 0.05) and the deepest overlap of
+Python loop of `step` calls), and at each N the engines take turns chunk by chunk (`_drive`), so a change in
+the host's load falls on all of them alike. The cost is the median over the chunks of a chunk's wall time per
+step, after compilation; jaxcon's compile time (lower + compile of that rollout, with the grid's search and
+solve) is reported apart. The ratios (`paired_ratio`) are the median over the chunks of jaxcon's chunk time
+over the peer's chunk at the same simulated time, measured side by side. At 4 s and 8 s: the fastest disc's speed (m/s; "rest" is below 0.05) and the deepest overlap of
 two discs or a disc and a wall (as a fraction of R), all measured the same way from each engine's positions
 (`deepest_overlap`); `overlap max` is the deepest at the ends of all chunks.
 """
@@ -99,7 +101,18 @@ def _steps(seconds):
     return int(round(seconds / DT / CHUNK)) * CHUNK
 
 
-def run_jaxcon(n, seconds=SECONDS, solver=None, name="jaxcon", **scene):
+def _drive(engines, seconds):
+    """Advance every engine `(run, chunk)` chunk by chunk in turn (engine 1's chunk k, engine 2's chunk k, ...):
+    a change in the host's load between chunks then falls on every engine alike, and the same-run ratios
+    (`main`) compare chunks measured side by side. Returns the runs."""
+    for k in range(_steps(seconds) // CHUNK):
+        for _, chunk in engines:
+            chunk(k)
+    return [run for run, _ in engines]
+
+
+def jaxcon_engine(n, solver=None, name="jaxcon", **scene):
+    """jaxcon's disc box as an engine for `_drive`: (run, chunk), compiled here (the compile time is the run's)."""
     from jaxcon.core.sim import rollout
     from jaxcon.scenes import disc_box, disc_box_layout
     from jaxcon.solvers.pgs import PGS
@@ -113,17 +126,23 @@ def run_jaxcon(n, seconds=SECONDS, solver=None, name="jaxcon", **scene):
     t0 = time.perf_counter()
     compiled = fn.lower(state).compile()
     out.compile_s = time.perf_counter() - t0
-    s = state
-    for k in range(_steps(seconds) // CHUNK):
+    box = [state]
+
+    def chunk(k):
         t0 = time.perf_counter()
-        s = compiled(s)
-        jax.block_until_ready(s)
+        box[0] = jax.block_until_ready(compiled(box[0]))
         out.chunks.append(time.perf_counter() - t0)
-        out.record((k + 1) * CHUNK * DT, np.asarray(s.x), np.asarray(s.v), width)
-    return out
+        out.record((k + 1) * CHUNK * DT, np.asarray(box[0].x), np.asarray(box[0].v), width)
+    return out, chunk
 
 
-def run_box2d(n, seconds=SECONDS):
+def run_jaxcon(n, seconds=SECONDS, solver=None, name="jaxcon", **scene):
+    """jaxcon's disc box alone (`jaxcon_engine`), `seconds` of it."""
+    return _drive([jaxcon_engine(n, solver, name, **scene)], seconds)[0]
+
+
+def box2d_engine(n):
+    """Box2D 2.3's disc box as an engine for `_drive` (module docstring)."""
     import Box2D
     from jaxcon.scenes import disc_box_layout
 
@@ -140,7 +159,8 @@ def run_box2d(n, seconds=SECONDS):
         b.CreateCircleFixture(radius=RADIUS, density=density, friction=FRICTION, restitution=0.0)
         bodies.append(b)
     out = _Run("Box2D " + Box2D.__version__, "Step(1/60, 10 velocity, 3 position), no sleeping")
-    for k in range(_steps(seconds) // CHUNK):
+
+    def chunk(k):
         t0 = time.perf_counter()
         for _ in range(CHUNK):
             world.Step(DT, 10, 3)
@@ -148,10 +168,15 @@ def run_box2d(n, seconds=SECONDS):
         x = np.array([tuple(b.position) for b in bodies])
         v = np.array([tuple(b.linearVelocity) for b in bodies])
         out.record((k + 1) * CHUNK * DT, x, v, width)
-    return out
+    return out, chunk
 
 
-def run_pymunk(n, seconds=SECONDS):
+def run_box2d(n, seconds=SECONDS):
+    return _drive([box2d_engine(n)], seconds)[0]
+
+
+def pymunk_engine(n):
+    """pymunk's disc box as an engine for `_drive` (module docstring)."""
     import pymunk
     from jaxcon.scenes import disc_box_layout
 
@@ -175,7 +200,8 @@ def run_pymunk(n, seconds=SECONDS):
         space.add(body, shape)
         bodies.append(body)
     out = _Run("pymunk " + pymunk.version, "iterations 10, collision_slop 0.005 m, no sleeping")
-    for k in range(_steps(seconds) // CHUNK):
+
+    def chunk(k):
         t0 = time.perf_counter()
         for _ in range(CHUNK):
             space.step(DT)
@@ -183,10 +209,19 @@ def run_pymunk(n, seconds=SECONDS):
         x = np.array([tuple(b.position) for b in bodies])
         v = np.array([tuple(b.velocity) for b in bodies])
         out.record((k + 1) * CHUNK * DT, x, v, width)
-    return out
+    return out, chunk
 
 
-PEERS = (("Box2D", "Box2D", run_box2d), ("pymunk", "pymunk", run_pymunk))
+def run_pymunk(n, seconds=SECONDS):
+    return _drive([pymunk_engine(n)], seconds)[0]
+
+
+def paired_ratio(a: _Run, b: _Run) -> float:
+    """The median over chunks of a's chunk time over b's same chunk (measured side by side, `_drive`)."""
+    return float(np.median(np.asarray(a.chunks) / np.asarray(b.chunks)))
+
+
+PEERS = (("Box2D", "Box2D", box2d_engine), ("pymunk", "pymunk", pymunk_engine))
 #: jaxcon's configurations, (name, iterations, substeps, contact_passes or None for the default): the issue's
 #: PGS(10), PGS(10) with 2 substeps (at rest at 4096 discs), and with 3 substeps and one position pass (at rest
 #: there with every overlap under 5% of R)
@@ -210,15 +245,12 @@ def main(sizes=(64, 256, 1024), seconds=SECONDS):
     results = []
     for n in sizes:
         from jaxcon.solvers.pgs import PGS
-        ours = [run_jaxcon(n, seconds, PGS(it, substeps=sub, contact_passes=cp), name) for name, it, sub, cp in JAXCON]
-        runs = ours + [fn(n, seconds) for _, fn in peers]
-        costs = {}
+        engines = [jaxcon_engine(n, PGS(it, substeps=sub, contact_passes=cp), name) for name, it, sub, cp in JAXCON]
+        runs = _drive(engines + [fn(n) for _, fn in peers], seconds)
+        ours, others = runs[:len(JAXCON)], runs[len(JAXCON):]
         for r in runs:
-            cells, ms = r.row(n)
-            costs[r.name] = ms
-            print("| " + " | ".join(cells) + " |", flush=True)
-        ratio = "; ".join(f"{j.name} / {k} {costs[j.name] / v:.1f}x" for j in ours for k, v in costs.items()
-                          if k not in {o.name for o in ours})
+            print("| " + " | ".join(r.row(n)[0]) + " |", flush=True)
+        ratio = "; ".join(f"{j.name} / {k.name} {paired_ratio(j, k):.2f}x" for j in ours for k in others)
         if ratio:
             print(f"|  | {n} | {ratio} |", flush=True)
         results.append((n, runs))
