@@ -342,7 +342,15 @@ def test_kept_candidate_lists_change_no_result(case, monkeypatch):
     search at every step (`grid.grid_search`, as before kept lists), and as with the wide search at every step;
     the lists are taken in most steps of a pile that lands and rests. Where the wider list overflows (mixed
     radii: its wider cells leave bucket entries unscanned; 3 slots: more candidates than slots) the step uses
-    the usual search, and reports the same overflow."""
+    the usual search, and reports the same overflow.
+
+    The slots are swept whole (`contact_rows.SPARSE_SLOT` 0): with sparse slots gathered the three programs
+    contract multiply-adds differently under the suite's XLA flags (1e-16 apart after 58 steps, 7e-3 after
+    150 in this pile), which bitwise equality cannot tell from a changed candidate list;
+    `test_sparse_slots_change_no_result` covers the gathered slots."""
+    from jaxcon.core import contact_rows
+    monkeypatch.setattr(contact_rows, "SPARSE_SLOT", 0)
+    jax.clear_caches()
     solver, dt, steps = jc.PGS(10), 1 / 60, 150
     if case == "discs":
         model, state = jc.scenes.disc_box(64, collide="grid")
@@ -409,5 +417,35 @@ def test_slot_major_impulses_change_no_result(solver, n, monkeypatch):
     assert traj.x.dtype == jnp.float64
     assert float(jnp.max(traj.contact_n[:, 3 * n:])) > 1e-3           # the pairs push from the first steps
     assert int(jnp.max(traj.contact_partners)) >= 0
+    for a, b in zip(jax.tree.leaves((final, traj)), jax.tree.leaves(other)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("solver", [jc.PGS(10), jc.PGS(6, substeps=2), jc.Direct(), jc.SoftStep()],
+                         ids=["PGS", "PGS substeps", "Direct", "SoftStep"])
+def test_sparse_slots_change_no_result(solver, monkeypatch):
+    """A grid slot holding at most n / SPARSE_SLOT rows is swept (and projected by the position pass) on its rows
+    gathered (`contact_rows.SparseSlots`, `GatheredSlotColour`) instead of on all n particles. The same updates
+    on the same rows in the same order: the rollout equals the one that sweeps every slot whole, in float64
+    (six steps, for the reason of `test_slot_major_impulses_change_no_result`). SPARSE_SLOT = 1.25 here, so that
+    in 36 discs a slot of at most 29 rows is gathered and a fuller one is not: both kinds are checked for."""
+    from jaxcon.core import contact_rows
+    n = 36
+    x = _discs(n // 4, 4, jitter=0.004, seed=1, gap=0.0)
+    v = np.stack([np.linspace(-0.5, 0.5, n), np.zeros(n)], -1)
+    model, state = jc.build(x, np.linspace(1.0, 2.0, n), velocities=v, radius=R, collide="grid", planes=BOX,
+                            friction=0.4, max_neighbours=8)
+    runs = []
+    for every in (1.25, 0):
+        monkeypatch.setattr(contact_rows, "SPARSE_SLOT", every)
+        jax.clear_caches()
+        runs.append(jc.rollout(model, state, solver, 1 / 60, 6))
+    monkeypatch.undo()
+    jax.clear_caches()
+    (final, traj), other = runs
+    assert traj.x.dtype == jnp.float64
+    assert float(jnp.max(traj.contact_n[:, 3 * n:])) > 1e-3           # the pairs push from the first steps
+    rows = np.sum(np.asarray(traj.contact_partners) >= 0, axis=1)       # [steps, K] rows per slot
+    assert np.any((rows > 0) & (rows <= 29)) and np.any(rows > 29)
     for a, b in zip(jax.tree.leaves((final, traj)), jax.tree.leaves(other)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)

@@ -155,8 +155,9 @@ def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impuls
     pn, pt = imp.pair_n, imp.pair_t
     if pairs is not None:
         dim, shape = v.shape[0], v.shape
-        block = pair_block(cs.ct, pairs.j, is_in_solve(pairs))      # j: a grid's partners, None for listed pairs
-        vf, (pn, pt) = L.each_colour(block, colour(w.reshape(-1)), v.reshape(dim, -1), ((pairs, soft[1]), (pn, pt)))
+        block = pair_block(cs.ct, pairs.j, is_in_solve(pairs), pairs.slots)   # j: a grid's partners, None if listed
+        vf, (pn, pt) = L.each_colour(block, colour(w.reshape(-1)), v.reshape(dim, -1),
+                                     ((pairs._replace(slots=None), soft[1]), (pn, pt)))
         v = vf.reshape(shape)
     return v, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
@@ -427,7 +428,7 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
         return L.each_colour(block, colour, x.reshape(dim, -1), (kk, None))[0].reshape(shape)
 
     if pairs is not None and pairs.i is not None:          # a grid's slots, read by every pass: moved once
-        block, kk = slot_rows(pairs.j, pairs.k)
+        block, kk = slot_rows(pairs.j, pairs.k, pairs.slots)
     else:
         block, kk = pair_block(ct), None
 
