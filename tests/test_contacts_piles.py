@@ -47,6 +47,8 @@ def test_contact_bench_takes_turns_and_pairs_chunks():
     a, b = bench._drive([engine("a", [1, 3, 3, 3, 1]), engine("b", [2, 6, 6, 6, 2])], 5 * bench.CHUNK * bench.DT)
     assert order == [(name, k) for k in range(5) for name in "ab"]
     assert bench.paired_ratio(a, b) == 0.5
+    b.chunks[3:] = [1, 1]                                      # from chunk 3 on, b is twice as fast as before
+    assert bench.paired_ratio(a, b) == 0.5 and bench.paired_ratio(a, b, 3) == 2.0
     run = bench.run_jaxcon(16, seconds=2 * bench.CHUNK * bench.DT)
     assert len(run.chunks) == 2 and all(t > 0 for t in run.chunks) and run.compile_s > 0
     assert 0 <= run.overlap_max < 0.05

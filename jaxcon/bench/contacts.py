@@ -21,9 +21,11 @@ Python loop of `step` calls), and at each N the engines take turns chunk by chun
 the host's load falls on all of them alike. The cost is the median over the chunks of a chunk's wall time per
 step, after compilation; jaxcon's compile time (lower + compile of that rollout, with the grid's search and
 solve) is reported apart. The ratios (`paired_ratio`) are the median over the chunks of jaxcon's chunk time
-over the peer's chunk at the same simulated time, measured side by side. At 4 s and 8 s: the fastest disc's speed (m/s; "rest" is below 0.05) and the deepest overlap of
-two discs or a disc and a wall (as a fraction of R), all measured the same way from each engine's positions
-(`deepest_overlap`); `overlap max` is the deepest at the ends of all chunks.
+over the peer's chunk at the same simulated time, measured side by side; in brackets, the same over the second
+half of the run alone (the piles landed, at rest or nearly). At 4 s and 8 s: the fastest disc's speed (m/s;
+"rest" is below 0.05) and the deepest overlap of two discs or a disc and a wall (as a fraction of R), all
+measured the same way from each engine's positions (`deepest_overlap`); `overlap max` is the deepest at the
+ends of all chunks.
 """
 from __future__ import annotations
 
@@ -217,9 +219,10 @@ def run_pymunk(n, seconds=SECONDS):
     return _drive([pymunk_engine(n)], seconds)[0]
 
 
-def paired_ratio(a: _Run, b: _Run) -> float:
-    """The median over chunks of a's chunk time over b's same chunk (measured side by side, `_drive`)."""
-    return float(np.median(np.asarray(a.chunks) / np.asarray(b.chunks)))
+def paired_ratio(a: _Run, b: _Run, start: int = 0) -> float:
+    """The median over chunks (from chunk `start` on) of a's chunk time over b's same chunk (measured side by
+    side, `_drive`)."""
+    return float(np.median(np.asarray(a.chunks[start:]) / np.asarray(b.chunks[start:])))
 
 
 PEERS = (("Box2D", "Box2D", box2d_engine), ("pymunk", "pymunk", pymunk_engine))
@@ -251,7 +254,9 @@ def main(sizes=(64, 256, 1024), seconds=SECONDS):
         ours, others = runs[:len(JAXCON)], runs[len(JAXCON):]
         for r in runs:
             print("| " + " | ".join(r.row(n)[0]) + " |", flush=True)
-        ratio = "; ".join(f"{j.name} / {k.name} {paired_ratio(j, k):.2f}x" for j in ours for k in others)
+        half = len(ours[0].chunks) // 2
+        ratio = "; ".join(f"{j.name} / {k.name} {paired_ratio(j, k):.2f}x (second half {paired_ratio(j, k, half):.2f}x)"
+                          for j in ours for k in others)
         if ratio:
             print(f"|  | {n} | {ratio} |", flush=True)
         results.append((n, runs))
