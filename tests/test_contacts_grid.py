@@ -383,6 +383,25 @@ def test_kept_candidate_lists_change_no_result(case, monkeypatch):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+def _sliding_discs(n, rods=None):
+    """n discs (n a multiple of 4) in 4 rows on the box's floor, sliding apart at up to 0.5 m/s, masses 1 to 2,
+    friction 0.4, 8 slots: the scene of the layout tests below."""
+    x = _discs(n // 4, 4, jitter=0.004, seed=1, gap=0.0)
+    v = np.stack([np.linspace(-0.5, 0.5, n), np.zeros(n)], -1)
+    return jc.build(x, np.linspace(1.0, 2.0, n), velocities=v, radius=R, collide="grid", planes=BOX,
+                    friction=0.4, max_neighbours=8, rods=rods)
+
+
+def _assert_same_rollouts(runs, n):
+    """Two rollouts `runs` = [(final, traj), (final, traj)] of `_sliding_discs(n)`: float64, the pairs pushing,
+    and every output equal to 1e-12."""
+    (final, traj), other = runs
+    assert traj.x.dtype == jnp.float64
+    assert float(jnp.max(traj.contact_n[:, 3 * n:])) > 1e-3           # the pairs push from the first steps
+    for a, b in zip(jax.tree.leaves((final, traj)), jax.tree.leaves(other)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("solver, n", [(jc.PGS(10), 8), (jc.PGS(6, substeps=2), 8), (jc.Direct(), 8), (jc.PGS(10), 36)],
                          ids=["PGS-8", "PGS substeps-8", "Direct-8", "PGS-36"])
 def test_slot_major_impulses_change_no_result(solver, n, monkeypatch):
@@ -397,11 +416,7 @@ def test_slot_major_impulses_change_no_result(solver, n, monkeypatch):
     differ by 1e-15 after six steps, and by 4e-7 after nine, where a contact switches; under the default flags
     they are bitwise equal for 60 steps). A wrong layout changes the first step's impulses by O(1)."""
     from jaxcon.solvers import direct, pgs
-    x = _discs(n // 4, 4, jitter=0.004, seed=1, gap=0.0)
-    rods = np.arange(n).reshape(-1, 2) if isinstance(solver, jc.Direct) else None
-    v = np.stack([np.linspace(-0.5, 0.5, n), np.zeros(n)], -1)
-    model, state = jc.build(x, np.linspace(1.0, 2.0, n), velocities=v, radius=R, collide="grid", planes=BOX,
-                            friction=0.4, max_neighbours=8, rods=rods)
+    model, state = _sliding_discs(n, np.arange(n).reshape(-1, 2) if isinstance(solver, jc.Direct) else None)
     runs = []
     for major in (True, False):
         for module in (pgs, direct):
@@ -413,12 +428,8 @@ def test_slot_major_impulses_change_no_result(solver, n, monkeypatch):
         runs.append(jc.rollout(model, state, solver, 1 / 60, 6))
         monkeypatch.undo()
     jax.clear_caches()
-    (final, traj), other = runs
-    assert traj.x.dtype == jnp.float64
-    assert float(jnp.max(traj.contact_n[:, 3 * n:])) > 1e-3           # the pairs push from the first steps
-    assert int(jnp.max(traj.contact_partners)) >= 0
-    for a, b in zip(jax.tree.leaves((final, traj)), jax.tree.leaves(other)):
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)
+    _assert_same_rollouts(runs, n)
+    assert int(jnp.max(runs[0][1].contact_partners)) >= 0
 
 
 @pytest.mark.parametrize("solver", [jc.PGS(10), jc.PGS(6, substeps=2), jc.Direct(), jc.SoftStep()],
@@ -431,10 +442,7 @@ def test_sparse_slots_change_no_result(solver, monkeypatch):
     in 36 discs a slot of at most 29 rows is gathered and a fuller one is not: both kinds are checked for."""
     from jaxcon.core import contact_rows
     n = 36
-    x = _discs(n // 4, 4, jitter=0.004, seed=1, gap=0.0)
-    v = np.stack([np.linspace(-0.5, 0.5, n), np.zeros(n)], -1)
-    model, state = jc.build(x, np.linspace(1.0, 2.0, n), velocities=v, radius=R, collide="grid", planes=BOX,
-                            friction=0.4, max_neighbours=8)
+    model, state = _sliding_discs(n)
     runs = []
     for every in (1.25, 0):
         monkeypatch.setattr(contact_rows, "SPARSE_SLOT", every)
@@ -442,10 +450,7 @@ def test_sparse_slots_change_no_result(solver, monkeypatch):
         runs.append(jc.rollout(model, state, solver, 1 / 60, 6))
     monkeypatch.undo()
     jax.clear_caches()
-    (final, traj), other = runs
-    assert traj.x.dtype == jnp.float64
-    assert float(jnp.max(traj.contact_n[:, 3 * n:])) > 1e-3           # the pairs push from the first steps
-    rows = np.sum(np.asarray(traj.contact_partners) >= 0, axis=1)       # [steps, K] rows per slot
+    _assert_same_rollouts(runs, n)
+    rows = np.sum(np.asarray(runs[0][1].contact_partners) >= 0, axis=1)       # [steps, K] rows per slot
     assert np.any((rows > 0) & (rows <= 29)) and np.any(rows > 29)
-    for a, b in zip(jax.tree.leaves((final, traj)), jax.tree.leaves(other)):
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)
+

@@ -26,8 +26,9 @@ step, shared by its substeps, `common.grid_substepped`): the pairs are
 found at the start of every step by `grid.neighbours` (a spatial hash of the positions) and kept in K slots per
 particle; their rows are those above, with `Rows.i`/`Rows.j` [n, K] naming the particles (j = -1: empty slot,
 k = 0). A PGS sweep solves them after the obstacles slot by slot, the rows of one slot together with mass
-splitting (`SlotBlock`; a slot of few rows on those rows gathered, `SparseSlots`); the position safety pass projects them the same way, and the warm start matches last
-step's impulses by partner (a slot's impulse is carried over only if the same pair is listed again).
+splitting (`SlotBlock`; a slot of few rows on those rows gathered, `SparseSlots`); the position safety pass
+projects them the same way, and the warm start matches last step's impulses by partner (a slot's impulse is
+carried over only if the same pair is listed again).
 `Impulses.partners` [n, K] and `Impulses.overflow` (the candidates that did not fit) travel with the impulses.
 The time-of-impact correction applies to grid pairs as to listed ones. After the solve, `common.grid_step`
 checks that no unlisted pair touched on the paths the solve gave (`grid.path_search`, `grid.unsolved`),
