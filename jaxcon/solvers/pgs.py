@@ -84,7 +84,7 @@ class PGS(Solver):
         neighbour grid, `contact.OVERLAP_PASSES` with listed pairs, 1 with obstacles only. The pass moves
         positions without touching velocities, so it lifts a deep pile against gravity each step; with
         several substeps that energy kept the 4096-disc box flowing, and one pass lets it rest
-        (`PGS(10, substeps=3, contact_passes=1)`, docs/contacts.md).
+        (`PGS(10, substeps=4, contact_passes=1)`, docs/contacts.md).
       warm_start_gradient: if False, no gradient flows through the warm-start impulses (static). The forward
         pass is unchanged and the gradient becomes a truncated one. Measured on a swinging 16x16 cloth it does
         not stop long-horizon gradient growth (that growth is the physics: the motion is chaotic, and a
