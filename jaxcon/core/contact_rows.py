@@ -486,7 +486,8 @@ def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h, slop=
     along the row's normal: it may close that gap within the step, and never pushes. C_spec < 0 where a contact
     overlaps by less than the rounding tolerance (separated by `_gap`, 1.2 mm at 40 m in float32): -C_spec / h
     pushed that overlap out within one step, past the Baumgarte threshold, and kicked single discs deep in the
-    4096-disc box at 0.1 to 0.2 m/s (docs/contacts.md, piles at rest). A touching one pushes its overlap beyond `slop` (m) out at -beta (C + slop) / h, at most
+    4096-disc box at 0.1 to 0.2 m/s (docs/contacts.md, piles at rest). A touching one pushes its overlap beyond
+    `slop` (m) out at -beta (C + slop) / h, at most
     `PUSH_OUT_SPEED`.
     Returns (target, target without restitution)."""
     dv = vn1 - vn0
