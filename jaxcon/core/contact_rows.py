@@ -81,10 +81,13 @@ class Rows(NamedTuple):
 
 class Selection(NamedTuple):
     """Obstacle rows worth sweeping (`select_obstacles`): per obstacle the flat indices of the rows within reach,
-    `idx` [Q, cap] (the particle count where unused), and `inside` [Q, n] (bool), the same rows as a mask."""
+    `idx` [Q, cap] (the particle count where unused), and `inside` [Q, n] (bool), the same rows as a mask.
+    `planes`: inside a velocity solve (`obstacles_in_solve`), per obstacle its rows (flat, `sel` None) and its
+    picked rows gathered in `idx`'s order, made once per solve instead of in every sweep; None otherwise."""
 
     idx: Array
     inside: Array
+    planes: Any = None
 
 
 def dot(a, b):
@@ -415,6 +418,51 @@ def pair_block(ct: ContactTopology, partners=None, major: bool = False, sparse: 
 # that (`in_solve`, `impulses_slot_major`) and moves them back after (`impulses_slot_minor`). The rows, which do
 # not change within the solve, stay as they are: moving them once too made the sweeps cheaper but the step no
 # faster, as the rows and the warm start took longer (probably XLA's layout assignment; docs/contacts.md).
+
+
+def obstacles_in_solve(obs: Rows, w) -> Rows:
+    """Obstacle rows inside a velocity solve whose obstacle impulses are split by obstacle
+    (`obstacle_impulses_split`), where a sweep picks rows (`obs.sel`): each obstacle's rows split off, flat, and
+    its picked rows and the inverse masses `w` [1, *view] at them gathered, once here (`Selection.planes`)
+    instead of in every sweep. The sweeps compute the same updates (`solvers.contact._selected_obstacles`)."""
+    nview = obs.gap.ndim - 1
+    n = int(np.prod(obs.gap.shape[1:]))
+    wf = w.reshape(-1)
+    planes = []
+    for q in range(obs.gap.shape[0]):
+        f = jax.tree.map(lambda a: a[q].reshape(a[q].shape[:a[q].ndim - nview] + (-1,)), obs._replace(sel=None))
+        at = jnp.minimum(obs.sel.idx[q], n - 1)
+        fs = jax.tree.map(lambda a: jnp.take(a, at, axis=-1), f)
+        fs = fs._replace(k=fs.k * (obs.sel.idx[q] < n).astype(fs.k.dtype))      # an unused entry: no row
+        planes.append((f, fs, jnp.take(wf, at)[None]))
+    return obs._replace(sel=obs.sel._replace(planes=tuple(planes)))
+
+
+def obstacle_impulses_split(imp: Impulses) -> Impulses:
+    """The obstacle impulses as a tuple per obstacle, flat: obs_n ([n], ...), obs_t ([dim, n], ...)."""
+    Q, dim = imp.obs_n.shape[0], imp.obs_t.shape[1]
+    return imp._replace(obs_n=tuple(imp.obs_n[q].reshape(-1) for q in range(Q)),
+                        obs_t=tuple(imp.obs_t[q].reshape(dim, -1) for q in range(Q)))
+
+
+def obstacle_impulses_joined(imp: Impulses, view) -> Impulses:
+    """`obstacle_impulses_split` undone, `view` the particles' view shape: obs_n [Q, *view], obs_t [Q, dim, *view]."""
+    return imp._replace(obs_n=jnp.stack([a.reshape(view) for a in imp.obs_n]),
+                        obs_t=jnp.stack([a.reshape((a.shape[0],) + tuple(view)) for a in imp.obs_t]))
+
+
+def phase(f: Optional[Rows], late) -> Optional[Rows]:
+    """Rows with the target of the solve's phase (`common.solve_phases`): `target` where `late`, else the
+    compression target `target_c`, in the obstacles' split-off and gathered rows too (`obstacles_in_solve`)."""
+    if f is None:
+        return None
+
+    def switch(r):
+        return r._replace(target=jnp.where(late, r.target, r.target_c))
+    out = switch(f)
+    if f.sel is not None and f.sel.planes is not None:
+        out = out._replace(sel=f.sel._replace(planes=tuple((switch(a), switch(b), w) for a, b, w in f.sel.planes)))
+    return out
 
 
 def in_solve(pairs: Rows) -> Rows:

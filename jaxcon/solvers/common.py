@@ -506,25 +506,37 @@ def solve_phases(sys, v_free, obs, pairs, iterations: int, carry, body, slot_maj
     (contact.restitution_scale). One loop, whose rows switch targets between the phases, so the iteration is
     traced and compiled once. Returns the carry mixed leaf by leaf.
 
-    `slot_major`: `body` reads a grid's pair rows only through `contact.sweep`, so the carry's pair impulses are
-    moved slot-major once here (`contact_rows.in_solve`) rather than in every sweep, and back."""
+    `slot_major`: `body` reads the contact rows only through `contact.sweep`, so the carry's pair impulses of a grid
+    are moved slot-major once here (`contact_rows.in_solve`) rather than in every sweep, and back; and where the
+    sweeps pick obstacle rows (`Rows.sel`), the obstacle impulses are split per obstacle and each obstacle's
+    picked rows gathered once here (`contact_rows.obstacles_in_solve`)."""
     if sys.contact is None:
         one_iteration = body(None, None)
         return lax.fori_loop(0, iterations, lambda _, c: one_iteration(c), carry)
-    if slot_major and pairs is not None and pairs.i is not None:
-        out = solve_phases(sys, v_free, obs, contact_rows.in_solve(pairs), iterations,
-                           _on_impulses(contact_rows.impulses_slot_major, carry), body)
-        return _on_impulses(contact_rows.impulses_slot_minor, out)
+    major = slot_major and pairs is not None and pairs.i is not None
+    split = slot_major and obs is not None and obs.sel is not None
+    if major or split:
+        view = obs.gap.shape[1:] if split else None
+
+        def enter(imp):
+            imp = contact_rows.impulses_slot_major(imp) if major else imp
+            return contact_rows.obstacle_impulses_split(imp) if split else imp
+
+        def leave(imp):
+            imp = contact_rows.impulses_slot_minor(imp) if major else imp
+            return contact_rows.obstacle_impulses_joined(imp, view) if split else imp
+
+        out = solve_phases(sys, v_free, contact_rows.obstacles_in_solve(obs, sys.w) if split else obs,
+                           contact_rows.in_solve(pairs) if major else pairs, iterations, _on_impulses(enter, carry),
+                           body)
+        return _on_impulses(leave, out)
     first = max(iterations // 2, 1)
     total = first + max(iterations - first, 1)
-
-    def phase_rows(f, late):
-        return None if f is None else f._replace(target=jnp.where(late, f.target, f.target_c))
 
     def one(i, state):
         carry, saved = state
         late = i >= first
-        carry = body(phase_rows(obs, late), phase_rows(pairs, late))(carry)
+        carry = body(contact_rows.phase(obs, late), contact_rows.phase(pairs, late))(carry)
         saved = jax.tree.map(lambda new, old: jnp.where(i == first - 1, new, old), carry, saved)
         return carry, saved
 

@@ -177,10 +177,11 @@ def _selected_obstacles(colour, w, v, obs: Rows, soft, on, ot):
         return a.reshape(a.shape[: a.ndim - nview] + (-1,))
 
     ons, ots = [], []
+    planes = obs.sel.planes          # inside a solve that split the impulses per obstacle (`solve_phases`)
     for q in range(obs.gap.shape[0]):
-        f = jax.tree.map(lambda a: flat(a[q]), obs._replace(sel=None))
+        f = jax.tree.map(lambda a: flat(a[q]), obs._replace(sel=None)) if planes is None else planes[q][0]
         s = None if soft is None else jax.tree.map(lambda a: flat(a[q]), soft)
-        ln, lt = flat(on[q]), flat(ot[q])
+        ln, lt = (flat(on[q]), flat(ot[q])) if planes is None else (on[q], ot[q])
         idx, inside = obs.sel.idx[q], obs.sel.inside[q]
         # a row `_solve_row` would leave as it is (no impulse, and k (target - vn) <= 0 asks for none): a change to
         # the row update must change this test too
@@ -193,10 +194,14 @@ def _selected_obstacles(colour, w, v, obs: Rows, soft, on, ot):
             def take(a):
                 return jnp.take(a, jnp.minimum(idx, n - 1), axis=-1)
 
-            fs = jax.tree.map(take, f)
-            fs = fs._replace(k=fs.k * live.astype(fs.k.dtype))            # an unused entry: no row
+            if planes is None:
+                fs = jax.tree.map(take, f)
+                fs = fs._replace(k=fs.k * live.astype(fs.k.dtype))        # an unused entry: no row
+            else:
+                fs = planes[q][1]
             ss = None if s is None else jax.tree.map(take, s)
-            vs, (lns, lts) = colour(take(wf))(take(vf), ObstacleColour(q), ((fs, ss), (take(ln), take(lt))))
+            ws = take(wf) if planes is None else planes[q][2]
+            vs, (lns, lts) = colour(ws)(take(vf), ObstacleColour(q), ((fs, ss), (take(ln), take(lt))))
 
             def put(a, b):
                 return a.at[..., idx].set(b, mode="drop")
@@ -208,9 +213,12 @@ def _selected_obstacles(colour, w, v, obs: Rows, soft, on, ot):
             return vf, ln, lt
 
         vf, ln, lt = lax.cond(jnp.all(inside | still), picked, every, (vf, ln, lt))
-        ons.append(ln.reshape(on.shape[1:]))
-        ots.append(lt.reshape(ot.shape[1:]))
-    return vf.reshape(vshape), (jnp.stack(ons), jnp.stack(ots))
+        ons.append(ln)
+        ots.append(lt)
+    if planes is not None:
+        return vf.reshape(vshape), (tuple(ons), tuple(ots))
+    return vf.reshape(vshape), (jnp.stack([a.reshape(on.shape[1:]) for a in ons]),
+                                jnp.stack([a.reshape(ot.shape[1:]) for a in ots]))
 
 
 def _obstacle_frame(obs: Rows):
