@@ -72,18 +72,21 @@ def test_a_pile_lands_and_rests_on_the_grid_with_every_solver(name):
     assert float(jnp.max(d.penetration)) < OVERLAP[name] * 2 * R
     assert float(jnp.max(jnp.abs(final.v))) < REST.get(name, 0.02)
     assert np.all(np.isfinite(np.asarray(traj.contact_n))) and float(jnp.min(traj.contact_n)) >= 0
-    # the box carries the pile: over the last step the impulses of the floor and the walls (normal and friction,
-    # summed over the substeps) add up to the pile's weight times dt, and point up. How the weight divides between
+    # the box carries the pile: over the last 20 steps the impulses of the floor and the walls (normal and
+    # friction, summed over the substeps) add up to the pile's weight times dt per step, and point up. Averaged:
+    # an unconverged solver's impulses swing from step to step while the pile rests (Jacobi: 0.97 to 1.04 of the
+    # weight; one step's sum was once 0.978, after a change of rounding only). How the weight divides between
     # the floor and the walls' friction is statically indeterminate: the walls may hold some of it up, or press
     # down what the pile locked in as it landed (PGS: the floor carries 1.10 of the weight, the walls' friction
     # -0.10, with every velocity below 1e-17)
     q, n = len(BOX), model.topology.n
     normals = np.array([p[0] for p in BOX])
-    cn = np.asarray(traj.contact_n[-1, : q * n]).reshape(q, n)
-    ct = np.asarray(traj.contact_t[-1, : q * n]).reshape(q, n, 2)
+    cn = np.asarray(traj.contact_n[-20:, : q * n]).reshape(20, q, n)
+    ct = np.asarray(traj.contact_t[-20:, : q * n]).reshape(20, q, n, 2)
     weight = 18 * 9.81 / 120
-    np.testing.assert_allclose((cn[:, :, None] * normals[:, None] + ct).sum((0, 1)) / weight, [0, 1], atol=0.02)
-    assert 0.7 < float(cn[0].sum()) / weight < 1.3
+    np.testing.assert_allclose((cn[..., None] * normals[:, None] + ct).sum((1, 2)).mean(0) / weight, [0, 1],
+                               atol=0.02)
+    assert 0.7 < float(cn[:, 0].sum(1).mean()) / weight < 1.3
 
 
 def test_penalty_on_the_grid_equals_all_pairs_in_3d():

@@ -598,8 +598,13 @@ def _swept(d, u, R, h, tol):
 
 
 def magnitude(a):
-    """Sum of |a| over the leading (dim) axis: the size of the coordinates a gap is computed from."""
-    return jnp.sum(jnp.abs(a), 0)
+    """Sum of |a| over the leading (dim) axis: the size of the coordinates a gap is computed from. Written out
+    component by component, as `dot`: XLA's CPU backend sends `jnp.sum(jnp.abs(a), 0)` to a reduction kernel of
+    its own."""
+    out = jnp.abs(a[0])
+    for k in range(1, a.shape[0]):
+        out = out + jnp.abs(a[k])
+    return out
 
 
 def _obstacle_geometry(cs: ContactSystem, x, v, h):
@@ -611,9 +616,9 @@ def _obstacle_geometry(cs: ContactSystem, x, v, h):
     size = magnitude(x) + r
     for p in range(ct.n_planes):
         nrm = jnp.broadcast_to(cs.plane_normal[p].reshape((dim,) + (1,) * nview), x.shape)
-        C = jnp.sum(nrm * x, 0) - cs.plane_offset[p] - r
+        C = dot(nrm, x) - cs.plane_offset[p] - r
         tol = tolerance(size + jnp.abs(cs.plane_offset[p]))
-        vn = jnp.sum(nrm * v, 0)
+        vn = dot(nrm, v)
         Ci = _gap(C, tol)                  # as in `_swept`: the impact is when the gap reaches -tol
         impact = (Ci > 0) & (Ci + h * vn < 0)
         out.append((nrm, C, C, impact, impact, jnp.where(impact, Ci / jnp.where(impact, -vn, 1), 0), tol))
@@ -687,8 +692,8 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None, slop=0.0):
     if obs is not None:
         n = obs[0]
         winv = jnp.broadcast_to(w[0], obs[1].shape)
-        obs = finish(obs, jnp.sum(n * v0[None], 1), jnp.sum(n * v[None], 1), winv, L.safe_reciprocal(winv),
-                     cs.radius, False)
+        nd = jnp.moveaxis(n, 1, 0)                     # [dim, Q, *view]
+        obs = finish(obs, dot(nd, v0[:, None]), dot(nd, v[:, None]), winv, L.safe_reciprocal(winv), cs.radius, False)
         if xf.shape[1] >= SELECT_FROM:
             obs = obs._replace(sel=select_obstacles(obs, vf, h))
     if pairs is not None:
@@ -758,7 +763,7 @@ def obstacle_gap(cs: ContactSystem, q: int, p, x=None):
     r = cs.radius[0]
     if q < cs.ct.n_planes:
         nrm = jnp.broadcast_to(cs.plane_normal[q].reshape((dim,) + (1,) * nview), p.shape)
-        return nrm, jnp.sum(nrm * p, 0) - cs.plane_offset[q] - r
+        return nrm, dot(nrm, p) - cs.plane_offset[q] - r
     s = q - cs.ct.n_planes
     c = cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
     if x is not None:
@@ -793,7 +798,7 @@ def velocity_rows(cs: ContactSystem, w, p, v_before, imp: Impulses, partners=Non
         n, C = jnp.stack(ns), jnp.stack(Cs)
         winv = jnp.broadcast_to(w[0], C.shape)
         k = L.safe_reciprocal(winv) * (imp.obs_n > 0).astype(C.dtype)
-        obs = Rows(n, _bounce_target(cs, jnp.sum(n * v_before[None], 1)), k, winv, jnp.zeros_like(C), C)
+        obs = Rows(n, _bounce_target(cs, dot(jnp.moveaxis(n, 1, 0), v_before[:, None])), k, winv, jnp.zeros_like(C), C)
     if ct.n_pairs or ct.has_grid:
         pf, vf, wf = p.reshape(dim, -1), v_before.reshape(dim, -1), w.reshape(-1)
         ia, ja, valid, _ = pair_slots(ct, pf.shape[1], partners)
@@ -801,7 +806,7 @@ def velocity_rows(cs: ContactSystem, w, p, v_before, imp: Impulses, partners=Non
         C = dist - cs.radius_flat[ia] - cs.radius_flat[ja]
         winv = wf[ia] + wf[ja]
         k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype) * (imp.pair_n > 0).astype(C.dtype)
-        vn = jnp.sum(n * (vf[:, ja] - vf[:, ia]), 0)
+        vn = dot(n, vf[:, ja] - vf[:, ia])
         pairs = Rows(n, _bounce_target(cs, vn), k, winv, jnp.zeros_like(C), C)
         if partners is not None:
             pairs = pairs._replace(i=ia, j=partners)

@@ -233,13 +233,13 @@ def jacobi_counts(cs: ContactSystem, v, obs: Rows, pairs: Rows, imp: Impulses, b
     ct, c = cs.ct, base
     if obs is not None:
         f = _obstacle_frame(obs)
-        vn = jnp.sum(v[:, None] * f.n, 0)
+        vn = _dot(v[:, None], f.n)
         act = ((imp.obs_n > 0) | (imp.obs_n + (obs.target - vn) * obs.k > 0)) & (obs.k > 0)
         c = c + jnp.sum(act.astype(c.dtype), 0)[None]
     if pairs is not None:
         ia, ja = pair_index(ct, pairs)
         vf = v.reshape(v.shape[0], -1)
-        vn = jnp.sum((vf[:, ja] - vf[:, ia]).reshape(pairs.n.shape) * pairs.n, 0)
+        vn = _dot((vf[:, ja] - vf[:, ia]).reshape(pairs.n.shape), pairs.n)
         act = ((imp.pair_n > 0) | (imp.pair_n + (pairs.target - vn) * pairs.k > 0)) & (pairs.k > 0)
         act = act.astype(c.dtype).reshape(-1)
         flat = c.reshape(-1).at[ia].add(act).at[ja].add(act)
@@ -293,9 +293,14 @@ def carry_slots(prev: Impulses, partners):
     (pair_n [n, K], pair_t [dim, n, K]). A slot keeps an impulse only if it lists the same partner again (each
     pair always sits in the row of its lower-numbered particle, so a pair that stays a candidate stays in the
     same row); a new pair starts from 0."""
-    same = (partners[:, :, None] == prev.partners[:, None, :]) & (partners >= 0)[:, :, None]
-    pn = jnp.sum(jnp.where(same, prev.pair_n[:, None, :], 0), -1)
-    pt = jnp.sum(jnp.where(same[None], prev.pair_t[:, :, None, :], 0), -1)
+    # at most one previous slot matches: a select per previous slot, written out (a reduction over the K axis is
+    # a kernel of its own on XLA's CPU backend)
+    live = partners >= 0
+    pn, pt = jnp.zeros_like(prev.pair_n), jnp.zeros_like(prev.pair_t)
+    for s in range(partners.shape[1]):
+        same = live & (partners == prev.partners[:, s:s + 1])
+        pn = jnp.where(same, prev.pair_n[:, s:s + 1], pn)
+        pt = jnp.where(same[None], prev.pair_t[:, :, s:s + 1], pt)
     return pn, pt
 
 
@@ -316,7 +321,9 @@ def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, 
     if obs is not None:
         on, ot = project(_obstacle_frame(obs), on, jnp.moveaxis(ot, 1, 0))
         ot = jnp.moveaxis(ot, 0, 1)          # back to [Q, dim, *view]
-        v = v + w * jnp.sum(obs.n * on[:, None] + ot, 0)
+        P = obs.n * on[:, None] + ot
+        for q in range(P.shape[0]):       # obstacle by obstacle, written out (see `carry_slots`)
+            v = v + w * P[q]
     pn, pt = prev.pair_n, prev.pair_t
     if pairs is not None and pairs.i is not None:
         pn, pt = carry_slots(prev, pairs.j)
@@ -497,7 +504,7 @@ def _position_row(disp, n, C, k, mu, ln, lt):
     the second body's displacement over the substep relative to the first, k = 1 / (w_i + w_j) (0: no row).
     Returns (position impulse change P [dim, ...] on the second body, new lam_n, new lam_t)."""
     new_n = R.accumulate(UNILATERAL, ln, -C * k)        # the row update of every kind, at position level
-    disp_t = disp - n * jnp.sum(disp * n, 0)
+    disp_t = disp - n * _dot(disp, n)
     stick = lt - disp_t * k
     limit = mu * new_n
     length, _ = L.safe_length(stick)
