@@ -82,12 +82,15 @@ class Rows(NamedTuple):
 class Selection(NamedTuple):
     """Obstacle rows worth sweeping (`select_obstacles`): per obstacle the flat indices of the rows within reach,
     `idx` [Q, cap] (the particle count where unused), and `inside` [Q, n] (bool), the same rows as a mask.
-    `planes`: inside a velocity solve (`obstacles_in_solve`), per obstacle its rows (flat, `sel` None) and its
-    picked rows gathered in `idx`'s order, made once per solve instead of in every sweep; None otherwise."""
+    `planes`: inside a velocity solve (`obstacles_in_solve`), per obstacle its rows (flat, `sel` None), its
+    picked rows gathered in `idx`'s order and the inverse masses at them, made once per solve instead of in every
+    sweep; None otherwise. `late`: the solve's phase (`phase`), which those rows' targets follow where they are
+    read (`phase_target`), or None (their own targets)."""
 
     idx: Array
     inside: Array
     planes: Any = None
+    late: Any = None
 
 
 def dot(a, b):
@@ -457,12 +460,15 @@ def phase(f: Optional[Rows], late) -> Optional[Rows]:
     if f is None:
         return None
 
-    def switch(r):
-        return r._replace(target=jnp.where(late, r.target, r.target_c))
-    out = switch(f)
-    if f.sel is not None and f.sel.planes is not None:
-        out = out._replace(sel=f.sel._replace(planes=tuple((switch(a), switch(b), w) for a, b, w in f.sel.planes)))
-    return out
+    if f.sel is not None and f.sel.planes is not None:     # the split-off rows switch where they are read
+        return f._replace(sel=f.sel._replace(late=late))
+    return phase_target(f, late)
+
+
+def phase_target(r: Rows, late) -> Rows:
+    """`r` with the target of the phase `late` (`phase`): `target` where `late`, else `target_c`; `r` itself
+    where `late` is None."""
+    return r if late is None else r._replace(target=jnp.where(late, r.target, r.target_c))
 
 
 def in_solve(pairs: Rows) -> Rows:

@@ -34,6 +34,7 @@ from jaxcon.core.contact_rows import (
     pair_block,
     pair_index,
     pair_total,
+    phase_target,
     slot_rows,
     velocity_rows,
 )
@@ -179,7 +180,8 @@ def _selected_obstacles(colour, w, v, obs: Rows, soft, on, ot):
     ons, ots = [], []
     planes = obs.sel.planes          # inside a solve that split the impulses per obstacle (`solve_phases`)
     for q in range(obs.gap.shape[0]):
-        f = jax.tree.map(lambda a: flat(a[q]), obs._replace(sel=None)) if planes is None else planes[q][0]
+        f = jax.tree.map(lambda a: flat(a[q]), obs._replace(sel=None)) if planes is None else \
+            phase_target(planes[q][0], obs.sel.late)
         s = None if soft is None else jax.tree.map(lambda a: flat(a[q]), soft)
         ln, lt = (flat(on[q]), flat(ot[q])) if planes is None else (on[q], ot[q])
         idx, inside = obs.sel.idx[q], obs.sel.inside[q]
@@ -198,7 +200,7 @@ def _selected_obstacles(colour, w, v, obs: Rows, soft, on, ot):
                 fs = jax.tree.map(take, f)
                 fs = fs._replace(k=fs.k * live.astype(fs.k.dtype))        # an unused entry: no row
             else:
-                fs = planes[q][1]
+                fs = phase_target(planes[q][1], obs.sel.late)
             ss = None if s is None else jax.tree.map(take, s)
             ws = take(wf) if planes is None else planes[q][2]
             vs, (lns, lts) = colour(ws)(take(vf), ObstacleColour(q), ((fs, ss), (take(ln), take(lt))))
