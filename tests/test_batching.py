@@ -271,7 +271,41 @@ def test_packing_only_where_it_pays():
         assert not batch.packing_pays(model.topology)
         assert not batch.batch_minor_topology(model.topology, 4, packed=True).packed
     cpu = jax.devices("cpu")
-    assert not batch.packs(None, cpu) and batch.packs(8, cpu)
+    assert batch.sweep_mode(None, cpu) == "plain" and batch.sweep_mode(8, cpu) == "packed"
+
+
+def test_accelerators_unroll_the_sweeps():
+    """On a GPU or TPU the loop over sweeps is unrolled (plain sweeps, never packed), with or without `chunk`."""
+    class Dev:
+        platform = "gpu"
+    assert batch.sweep_mode(None, [Dev()]) == batch.sweep_mode(64, [Dev()]) == "unrolled"
+    assert batch.batch_minor_topology(jc.scenes.double_pendulum()[0].topology, 4, unroll=True).unroll
+
+
+@pytest.mark.parametrize("solver", [jc.PGS(), jc.PGS(stabilization="split"), jc.Jacobi(), jc.XPBD(),
+                                    jc.SoftStep()], ids=["pgs", "split", "jacobi", "xpbd", "softstep"])
+def test_unrolled_sweeps_equal_the_loop(solver):
+    """What an accelerator runs (`Topology.unroll`): the same sweeps, unrolled, give the loop's results and
+    gradients to rounding, on gather blocks with ropes (the irregular graph), and for PGS on the strided cloth."""
+    for name, (model, state) in _scenes():
+        plain_pgs = isinstance(solver, jc.PGS) and solver.stabilization == "baumgarte"
+        if name == "rope_chain" or name == "cloth" and not plain_pgs:
+            continue
+        states = _states(state, 3)
+
+        def run(unroll, rest):
+            final, tr = batch._minor(model.replace(rest_length=rest), states, solver, 1 / 240, 12, 3, unroll=unroll)
+            return final, tr, jnp.mean(tr.x ** 2) + jnp.mean(final.lam ** 2)
+
+        loops = {u: jax.jit(lambda r, u=u: run(u, r)[2]).lower(model.rest_length).as_text().count("stablehlo.while")
+                 for u in (False, True)}
+        assert 0 < loops[True] < loops[False], loops            # the time loop stays, the sweeps' loop is gone
+        ref, got = run(False, model.rest_length), run(True, model.rest_length)
+        for a, b in zip(jax.tree.leaves(ref), jax.tree.leaves(got)):
+            np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-10)
+        if name == "graph":
+            g = [jax.grad(lambda r, u=u: run(u, r)[2])(model.rest_length) for u in (False, True)]
+            np.testing.assert_allclose(g[1], g[0], rtol=1e-8, atol=1e-12)
 
 
 def test_gradient_through_packed_sweeps():
@@ -291,7 +325,7 @@ def test_gradient_through_packed_sweeps():
 
 @pytest.mark.optimised
 def test_one_piece_kernels_per_step_against_the_reference():
-    """jc.batched_rollout in one piece (what an accelerator runs) compiles the double pendulum's time step to at
+    """jc.batched_rollout in one piece on the CPU (packed sweeps) compiles the double pendulum's time step to at
     most 1.3x the kernels (fusions and copies, loops within a step counted per trip) of the plain batch-minor
     reference, as the bench counts them (float32, PGS(10)). The counts do not depend on the batch size (the
     same from 8 to 131072); this counts HLO, it times nothing."""

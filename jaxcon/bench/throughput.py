@@ -38,8 +38,8 @@ def _batch(scene, batch, dtype):
     else:
         raise ValueError(f"batched_throughput: unknown scene {scene!r} ('double_pendulum', 'cloth' or 'billiards')")
     stacked = jax.tree.map(lambda *a: jnp.stack([jnp.asarray(x) for x in a]), *states)
-    reps = -(-batch // len(states))
-    state = jax.tree.map(lambda a: jnp.concatenate([a] * reps)[:batch], stacked)
+    reps = -(-batch // len(states))             # tiled, not concatenated: at 1M copies that was 16384 operands
+    state = jax.tree.map(lambda a: jnp.tile(a, (reps,) + (1,) * (a.ndim - 1))[:batch], stacked)
     return model, state
 
 
@@ -69,8 +69,8 @@ def batched_throughput(batch_sizes: Sequence[int] = (1, 64, 1024, 16384), steps:
     the 16-ball billiards), final state only, after compilation.
 
     modes: "vmap" (`jax.jit(jax.vmap(rollout))`), "batched_rollout" (`jc.batched_rollout` with its defaults,
-    or `chunk`), "one_piece" (`jc.batched_rollout(chunk=batch)`: the whole batch in one piece, what an
-    accelerator runs by default; skipped where that is the default already, and for models batched with vmap),
+    or `chunk`), "one_piece" (`jc.batched_rollout(chunk=batch)`: the whole batch in one piece: packed
+    sweeps on the CPU, unrolled ones on an accelerator (`batch.sweep_mode`); skipped where that is the default already, and for models batched with vmap),
     "reference" (the plain batch-minor PGS of `bench.references.batch_minor_pgs`, double pendulum and PGS only;
     skipped otherwise).
 

@@ -30,15 +30,15 @@ from jaxcon.core.system import Solver, System
 from jaxcon.core.topology import Block, Topology
 
 
-def batch_minor_topology(t: Topology, batch: int, packed: bool = False) -> Topology:
+def batch_minor_topology(t: Topology, batch: int, packed: bool = False, unroll: bool = False) -> Topology:
     """The topology of `batch` disjoint copies of `t`, copy b of particle p at flat position p * batch + b of
     the view ``(*t.view, batch)``. Constraint k of copy b is ``k * batch + b`` within its block. Built from
     `t`'s unrolled layout (one block per colour; a compact table's rows would each be a batch of gathers).
     `packed`: PGS sweeps it with `jaxcon.solvers.pgs.packed_sweeps` (one kernel per colour and sweep) where
-    `packing_pays`."""
+    `packing_pays`. `unroll`: the solvers unroll their loop over sweeps (`Topology.unroll`)."""
     t, B = t.unrolled, int(batch)
     out = object.__new__(Topology)
-    out.batch, out.packed = B, bool(packed) and packing_pays(t)
+    out.batch, out.packed, out.unroll = B, bool(packed) and packing_pays(t), bool(unroll)
     ar = np.arange(B)
 
     def rep(idx):           # per-constraint or per-particle indices of one copy -> all copies, batch-minor
@@ -73,7 +73,7 @@ def batch_minor_topology(t: Topology, batch: int, packed: bool = False) -> Topol
     out.blocks = tuple(blocks)
     for a in (out.i, out.j, out.is_rope, out.colour, out.fixed, out.star):
         a.setflags(write=False)
-    out._key = ("batch-minor", B, out.packed, t._key)
+    out._key = ("batch-minor", B, out.packed, out.unroll, t._key)
     out._hash = hash(out._key)
     return out
 
@@ -197,11 +197,11 @@ def drive_in(t: Topology, forces, targets, dtype):
     return f, targets
 
 
-def _minor(model, states, solver, dt, steps, save_every, drive=(None, None), packed=False):
+def _minor(model, states, solver, dt, steps, save_every, drive=(None, None), packed=False, unroll=False):
     """One batch-minor rollout of every state in `states` ([b, ...] leaves), under `drive` = (forces, targets)
-    with the same leading axis b (or None); `packed`: see `batch_minor_topology`."""
+    with the same leading axis b (or None); `packed`, `unroll`: see `batch_minor_topology`."""
     t, dtype, B = model.topology.unrolled, jnp.result_type(states.x), states.x.shape[0]
-    tb = batch_minor_topology(t, B, packed)
+    tb = batch_minor_topology(t, B, packed, unroll)
     sys = system(model, tb, dtype, B)
     x = particles_in(t, jnp.asarray(states.x, dtype))
     v = _sim.hold_fixed(tb, particles_in(t, jnp.asarray(states.v, dtype)))
@@ -246,21 +246,24 @@ def _pad(tree, multiple):
     return jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)]), tree)
 
 
-def _local(model, batch, solver, dt, steps, save_every, chunk, pack=False):
+def _local(model, batch, solver, dt, steps, save_every, chunk, sweeps="plain"):
     """The batch held by one device, `batch` = (states, (forces, targets)) with leading batch axes: batch-minor in
     chunks of `chunk` (None: one piece), or `jax.vmap` over chunks for solvers that are not layout-generic.
-    `pack`: a batch run in one piece packs PGS's sweeps (`batch_minor_topology`); pieces never do."""
+    `sweeps` (`sweep_mode`): "packed" packs PGS's sweeps in a batch run in one piece (`batch_minor_topology`;
+    pieces never pack), "unrolled" unrolls the solvers' loops over sweeps."""
     b = batch[0].x.shape[0]
     if not layout_generic(solver, model):
         one = lambda a: _sim._rollout_jit(model, a[0], solver, dt, steps, save_every, None, True,  # noqa: E731
                                           *a[1])
         return _map(one, batch, min(chunk or b, b))
     if chunk is None or chunk >= b:
-        return _minor(model, batch[0], solver, dt, steps, save_every, batch[1], pack)
+        return _minor(model, batch[0], solver, dt, steps, save_every, batch[1], sweeps == "packed",
+                      sweeps == "unrolled")
     padded = _pad(batch, chunk)
     n = padded[0].x.shape[0] // chunk
     parts = jax.tree.map(lambda a: a.reshape((n, chunk) + a.shape[1:]), padded)
-    out = lax.map(lambda a: _minor(model, a[0], solver, dt, steps, save_every, a[1]), parts)
+    out = lax.map(lambda a: _minor(model, a[0], solver, dt, steps, save_every, a[1], unroll=sweeps == "unrolled"),
+                  parts)
     return jax.tree.map(lambda a: a.reshape((n * chunk,) + a.shape[2:])[:b], out)
 
 
@@ -270,16 +273,16 @@ def _per_copy(a, b):
     return a if a is None or jnp.ndim(a) == 4 else jnp.broadcast_to(a, (b,) + jnp.shape(a))
 
 
-@functools.partial(jax.jit, static_argnames=("steps", "save_every", "chunk", "mesh", "pack"))
+@functools.partial(jax.jit, static_argnames=("steps", "save_every", "chunk", "mesh", "sweeps"))
 def _batched_jit(model, states, solver, dt, steps, save_every, chunk, mesh=None, forces=None, targets=None,
-                 pack=False):
+                 sweeps="plain"):
     b = states.x.shape[0]
     batch = (states, tuple(_per_copy(a, b) for a in (forces, targets)))
     if mesh is None or mesh.size == 1:
-        return _local(model, batch, solver, dt, steps, save_every, chunk, pack)
+        return _local(model, batch, solver, dt, steps, save_every, chunk, sweeps)
     axis = mesh.axis_names
     spec, rep = PartitionSpec(axis), PartitionSpec()
-    local = jax.shard_map(lambda m, a, so, h: _local(m, a, so, h, steps, save_every, chunk, pack), mesh=mesh,
+    local = jax.shard_map(lambda m, a, so, h: _local(m, a, so, h, steps, save_every, chunk, sweeps), mesh=mesh,
                           in_specs=(rep, spec, rep, rep), out_specs=spec, check_vma=False)
     out = local(model, _pad(batch, mesh.size), solver, jnp.asarray(dt))
     return out if out[0].x.shape[0] == b else jax.tree.map(lambda a: a[:b], out)
@@ -319,12 +322,21 @@ def default_chunk(devices) -> int | None:
     return CPU_CHUNK if all(d.platform == "cpu" for d in devices) else None
 
 
-def packs(chunk, devices) -> bool:
-    """Whether a batch run in one piece packs PGS's sweeps (`jaxcon.solvers.pgs.packed_sweeps`: one kernel per
-    colour and sweep instead of two plus a copy): always, except under the CPU default (`chunk=None` on CPU,
-    pieces of CPU_CHUNK), whose plain sweeps ran 1.3 to 1.5x faster there (docs/batching.md). Pieces smaller
-    than the batch never pack."""
-    return chunk is not None or default_chunk(devices) is None
+def sweep_mode(chunk, devices) -> str:
+    """How a batch-minor rollout runs PGS's sweeps (and every solver's loop over sweeps), by backend:
+
+    - on a GPU or TPU, "unrolled": plain sweeps with the loop over them unrolled (`Topology.unroll`). On an
+      H200 (jax 0.11.2, double pendulums, PGS(10), one piece) that ran 1.6 to 6x the packed sweeps and 1.2 to
+      2.7x the plain loop: a loop ends XLA's fusions at every trip, and XLA's GPU fusion (which has multi-output
+      fusions) merges the plain sweep's two kernels per colour by itself, so packing only adds its
+      optimization barriers (docs/batching.md);
+    - on the CPU, "packed" for a batch run in one piece (`chunk` given; `jaxcon.solvers.pgs.packed_sweeps`: one
+      kernel per colour and sweep instead of two plus a copy, XLA's CPU backend having no multi-output fusion),
+      and "plain" under the CPU default (pieces of CPU_CHUNK), whose plain sweeps ran 1.3 to 1.5x faster there.
+      Pieces smaller than the batch never pack."""
+    if default_chunk(devices) is None:
+        return "unrolled"
+    return "packed" if chunk is not None else "plain"
 
 
 def batched_rollout(model: Model, states: State, solver: Solver, dt, steps: int, *, chunk: int | None = None,
@@ -339,8 +351,8 @@ def batched_rollout(model: Model, states: State, solver: Solver, dt, steps: int,
     Args:
       chunk: systems per piece on each device. None (default): CPU_CHUNK (1024) on CPU, where pieces that fit
         in cache ran 1.5x faster than one large piece, and no chunking on GPU or TPU. A batch run in one piece
-        (the accelerator default, or `chunk` >= the batch) carries PGS's sweeps in one packed array: about half
-        the kernels per step (`packs`); the CPU default keeps the plain sweeps.
+        on the CPU (`chunk` >= the batch) carries PGS's sweeps in one packed array: about half the kernels per
+        step; on an accelerator the loop over sweeps is unrolled instead (`sweep_mode`).
       save_every: as for `rollout`.
       devices: the devices to shard the batch over (default: all local devices); a batch that does not divide
         evenly is padded with copies of its last state, which are dropped from the results.
@@ -353,11 +365,11 @@ def batched_rollout(model: Model, states: State, solver: Solver, dt, steps: int,
     """
     forces, targets = _check_batch(model, states, solver, dt, steps, save_every, chunk, forces, targets)
     mesh = _mesh(devices, mesh)
-    pack = packs(chunk, mesh.devices.flat)
+    sweeps = sweep_mode(chunk, mesh.devices.flat)
     if chunk is None:
         chunk = default_chunk(mesh.devices.flat)
     return _batched_jit(model, states, solver, dt, steps, save_every, chunk, mesh if mesh.size > 1 else None,
-                        forces, targets, pack)
+                        forces, targets, sweeps)
 
 
 def _check_batch(model, states, solver, dt, steps, save_every, chunk, forces=None, targets=None):

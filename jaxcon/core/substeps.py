@@ -6,7 +6,7 @@ import jax.numpy as jnp
 from jax import lax
 
 
-def substepped(substep, substeps: int, x, v, lam, dt, path: bool = False):
+def substepped(substep, substeps: int, x, v, lam, dt, path: bool = False, unroll: bool = False):
     """Run `substep(x, v, lam_ws, h) -> (x, v, lam_h)` `substeps` times with h = dt / substeps.
 
     The step's warm start `lam` (an impulse over dt) is split evenly over the substeps; the returned impulse
@@ -15,7 +15,8 @@ def substepped(substep, substeps: int, x, v, lam, dt, path: bool = False):
     passed through: the returned ones are the last substep's.
 
     `path`: also return the positions after each substep k = 1 .. substeps, [substeps, *x.shape] without gradient
-    (a neighbour grid's check of the paths, `common.grid_step`), as a fourth output.
+    (a neighbour grid's check of the paths, `common.grid_step`), as a fourth output. `unroll`: unroll the loop over
+    substeps (`Topology.unroll`).
     """
     h = dt / substeps
     if substeps == 1:
@@ -32,7 +33,7 @@ def substepped(substep, substeps: int, x, v, lam, dt, path: bool = False):
             trail = trail.at[k].set(lax.stop_gradient(x))
         return x, v, ws, jax.tree.map(lambda t, w: t + w if _real(w) else w, total, ws), trail
 
-    x, v, _, total, trail = lax.fori_loop(0, substeps, body, (x, v, ws, zero, trail))
+    x, v, _, total, trail = lax.fori_loop(0, substeps, body, (x, v, ws, zero, trail), unroll=unroll)
     return (x, v, total) if not path else (x, v, total, trail)
 
 

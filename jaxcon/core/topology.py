@@ -410,6 +410,10 @@ class Topology:
     #: Whether a batch-minor topology's solvers carry each sweep's velocities and impulses in one packed array
     #: (`jaxcon.solvers.pgs.packed_sweeps`): what a batch run in one piece uses.
     packed = False
+    #: Whether the solvers unroll their loops over sweeps and substeps (a batch-minor topology on an accelerator,
+    #: `jaxcon.core.batch.sweep_mode`): XLA's GPU fusion then fuses across sweeps, as in the hand-written
+    #: reference; a loop ends every fusion at each trip.
+    unroll = False
 
     @property
     def n_colours(self) -> int:

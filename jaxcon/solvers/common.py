@@ -340,7 +340,7 @@ def run_substeps(sys, substep, substeps: int, x, v, lam, dt):
     model's pairs come from a neighbour grid."""
     if sys.contact is not None and sys.contact.ct.has_grid:
         return grid_substepped(sys, substep, substeps, x, v, lam, dt)
-    return substepped(substep, substeps, x, v, lam, dt)
+    return substepped(substep, substeps, x, v, lam, dt, unroll=sys.topology.unroll)
 
 
 def with_contacts(sys, lam, imp):
@@ -512,7 +512,7 @@ def solve_phases(sys, v_free, obs, pairs, iterations: int, carry, body, slot_maj
     picked rows gathered once here (`contact_rows.obstacles_in_solve`)."""
     if sys.contact is None:
         one_iteration = body(None, None)
-        return lax.fori_loop(0, iterations, lambda _, c: one_iteration(c), carry)
+        return lax.fori_loop(0, iterations, lambda _, c: one_iteration(c), carry, unroll=sys.topology.unroll)
     major = slot_major and pairs is not None and pairs.i is not None
     split = slot_major and obs is not None and obs.sel is not None
     if major or split:

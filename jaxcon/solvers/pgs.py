@@ -293,6 +293,6 @@ def packed_sweeps(topo, fr, bias, v, lam, iterations, v_free, ws):
 
     lm = jnp.concatenate([a.reshape(-1, B) for a in lam])
     S = pack(v, lm, solve(0, L.gather_after(topo, blocks[0], v_free, ws)))
-    S = lax.fori_loop(0, iterations, sweep, S)
+    S = lax.fori_loop(0, iterations, sweep, S, unroll=topo.unroll)
     v = S[:nv].reshape(v_shape)
     return v, tuple(S[nv + off[c]:nv + off[c + 1]].reshape(shapes[c]) for c in range(C))

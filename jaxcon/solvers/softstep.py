@@ -161,5 +161,5 @@ class SoftStep(Solver):
                 v, imp = contact.sweep(cs, w, v, obs, pairs, imp)
                 return v, lam, imp
 
-            v, lam, imp = lax.fori_loop(0, self.relax_iterations, relax, (v, lam, imp))
+            v, lam, imp = lax.fori_loop(0, self.relax_iterations, relax, (v, lam, imp), unroll=topo.unroll)
         return x, v, with_contacts(sys, lam, imp)

@@ -89,7 +89,7 @@ class XPBD(Solver):
 
             zero = tuple(jnp.zeros(b.shape, dtype) for b in topo.blocks)
             imp = None if cs is None else zero_impulses(topo, cs.ct, dtype)
-            p, mu, imp = lax.fori_loop(0, self.iterations, sweep, (x + h * v_before, zero, imp))
+            p, mu, imp = lax.fori_loop(0, self.iterations, sweep, (x + h * v_before, zero, imp), unroll=topo.unroll)
             v = (p - x) / h
             if cs is not None:
                 v, imp = contact.position_velocity_pass(cs, sys.w, p, v_before, v, imp, h, partners)
