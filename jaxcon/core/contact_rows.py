@@ -328,7 +328,8 @@ class RoundBlock:
 
 
 class SlotBlock:
-    """A grid model's pair rows, [..., n, K] leaves, with their `partners` [n, K]: slot by slot in a `lax.scan`;
+    """A grid model's pair rows, [..., n, K] leaves, with their `partners` [n, K]: slot by slot in a `lax.scan`
+    (in groups of `SLOT_GROUP`, a group run only where one of its slots holds a row);
     a slot no particle uses (the grid fills each particle's slots from the first, so the last ones are often empty
     everywhere) is skipped. `major`: the multipliers (the second half of the rows) are slot-major already,
     [K, ..., n] (`in_solve`), and come back that way. `rows_major`: so are the partners ([K, n]) and the rows'
@@ -365,23 +366,26 @@ class SlotBlock:
             lam = jax.tree.map(_slots_first, lam)
         sparse = None if self.sparse is None else tuple(self.sparse)
         xs = (partners, (data, lam), sparse)
-        K = partners.shape[0]
-        if not SLOT_HEAD or K <= SLOT_HEAD:
+        K, G = partners.shape[0], SLOT_GROUP
+        if G and K > G and K % G == 0:
+            # groups of G slots, each run only where one of its slots holds a row: the grid fills each particle's
+            # slots from the first, so the last groups are often empty everywhere and then cost one cond each
+            grouped = jax.tree.map(lambda a: a.reshape((K // G, G) + a.shape[1:]), xs)
+
+            def group(carry, g):
+                return lax.cond(_any_used(g[0]), lambda c: lax.scan(body, c, g), lambda c: (c, g[1][1]), carry)
+            carry, out = lax.scan(group, carry, grouped)
+            out = jax.tree.map(lambda a: a.reshape((K,) + a.shape[2:]), out)
+        else:
             carry, out = lax.scan(body, carry, xs)
-        else:       # the slots from SLOT_HEAD on only where one of them holds a row
-            head, tail = (jax.tree.map(lambda a: a[:SLOT_HEAD], xs), jax.tree.map(lambda a: a[SLOT_HEAD:], xs))
-            carry, out_h = lax.scan(body, carry, head)
-            carry, out_t = lax.cond(_any_used(tail[0]), lambda c: lax.scan(body, c, tail),
-                                    lambda c: (c, tail[1][1]), carry)
-            out = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), out_h, out_t)
         return carry, out if self.major else jax.tree.map(_slots_last, out)
 
 
-#: `SlotBlock` runs a grid's slots from SLOT_HEAD on only where one of them holds a row (one `lax.cond` for them
-#: all): the grid fills each particle's slots from the first, and at rest a disc pile uses four of eight (the
-#: 1024-disc box: 1016, 977, 766 and 38 rows), so the other four cost nothing, not a skipped branch each. 0: all
-#: slots in one scan.
-SLOT_HEAD = 4
+#: `SlotBlock` runs a grid's slots in groups of SLOT_GROUP, a group only where one of its slots holds a row (one
+#: `lax.cond` for the group, around a scan of its slots): at rest a disc pile uses four of its eight slots (the
+#: 1024-disc box: 1016, 977, 766 and 38 rows), and a cloth with room for 32 partners fewer than half, so the empty
+#: groups cost a cond each, not a skipped branch and the scan's slicing per slot. 0: all slots in one scan.
+SLOT_GROUP = 4
 
 
 def _any_used(partners):
