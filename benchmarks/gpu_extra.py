@@ -1,8 +1,6 @@
-"""Two GPU measurements that `python -m jaxcon bench` has no flag for (benchmarks/gpu_session.sh runs them).
+"""Two GPU measurements that `python -m jaxcon bench` has no flag for (benchmarks/gpu_session.sh runs them; the
+sweep variants of the batch in one piece are `benchmarks/gpu_sweeps.py`).
 
-    python benchmarks/gpu_extra.py packed B [B ...]        double pendulums, PGS(10), 240 steps, float32, one piece:
-                                                           packed sweeps against plain ones, both as a fori_loop and
-                                                           with the sweeps unrolled
     python benchmarks/gpu_extra.py billiards B [B ...]     16-ball billiards tables, PGS(10), 240 steps: vmap of rollout
                                                            against batched_rollout
     python benchmarks/gpu_extra.py box SECONDS N [N ...]   the disc box (jc.scenes.disc_box, grid, PGS(10), float32)
@@ -15,27 +13,6 @@ import time
 
 import jax
 import numpy as np
-
-
-def packed(sizes):
-    import jaxcon as jc
-    from jaxcon.bench.kernels import step_kernels
-    from jaxcon.bench.throughput import _batch
-    from jaxcon.bench.timing import compile_and_time
-    from jaxcon.core import batch
-
-    print(f"backend {jax.default_backend()}, {jax.devices()[0].device_kind}")
-    for B in sizes:
-        model, s = _batch("double_pendulum", B, np.float32)
-        for p in (True, False):
-            f = lambda s, p=p: batch._minor(model, s, jc.PGS(), 1 / 240, 240, 240, packed=p)[0].x  # noqa: E731
-            c, t, compiled = compile_and_time(f, s, repeats=5)
-            try:
-                k = step_kernels(compiled.as_text(), 240)["total"]
-            except (ValueError, KeyError, TypeError):
-                k = None
-            print(f"B {B:8d} {'packed' if p else 'plain ':6s} compile {c:6.2f} s  {B * 240 / t:10.3g} "
-                  f"pendulum-steps/s  kernels/step {k}", flush=True)
 
 
 def billiards(sizes):
@@ -61,11 +38,9 @@ def box(seconds, sizes):
 
 if __name__ == "__main__":
     what, args = sys.argv[1], [float(a) if "." in a else int(a) for a in sys.argv[2:]]
-    if what == "packed":
-        packed(args)
-    elif what == "billiards":
+    if what == "billiards":
         billiards(args)
     elif what == "box":
         box(args[0], args[1:])
     else:
-        raise SystemExit(f"gpu_extra.py: unknown measurement {what!r} (packed, billiards or box)")
+        raise SystemExit(f"gpu_extra.py: unknown measurement {what!r} (billiards or box)")

@@ -28,7 +28,7 @@ part batched 150 python3 -m jaxcon bench --batched $BATCH --repeats 5 --out "$OU
 part grid 80 python3 -m jaxcon bench --contact-grid $GRID
 part box 100 python3 benchmarks/gpu_extra.py box $BOXS $BOX
 part billiards 50 python3 benchmarks/gpu_extra.py billiards $BILL
-part packed 60 python3 benchmarks/gpu_extra.py packed $BATCH
+part sweeps 60 python3 benchmarks/gpu_sweeps.py $BATCH
 # a GPU subset of the suite (x64, as the suite runs). -v names each failure as it happens: on the H200 a run cut
 # off at its limit ended before pytest's summary, and its one failure went unnamed
 XLA_PYTHON_CLIENT_PREALLOCATE=false part tests 110 python3 -m pytest -v --tb=line -n 8 -p no:cacheprovider \

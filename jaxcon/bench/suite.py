@@ -228,7 +228,8 @@ def batched(small: bool, repeats: int, sizes=None, only_default_backend: bool = 
         print(f"\nbatched rollouts over initial states, PGS(10), {steps} steps, float32, final state only; backend "
               f"{backend}, {len(jax.local_devices(backend=backend))} device(s). vmap: jax.vmap(jc.rollout); "
               "batched_rollout: jc.batched_rollout with its defaults (batch-minor, sharded; on CPU in pieces of "
-              f"{CPU_CHUNK}); one_piece: jc.batched_rollout(chunk=batch), the whole batch in one piece (packed sweeps on the CPU, unrolled ones on an accelerator); "
+              f"{CPU_CHUNK}); one_piece: jc.batched_rollout(chunk=batch), the whole batch in one piece (packed "
+              "sweeps on the CPU, unrolled ones on an accelerator); "
               "reference: plain batch-minor PGS. kernels/step: fusions and copies per time step in the compiled "
               "program (loops inside a step counted per trip)")
         print(f"{'scene':18s} {'batch':>7s} {'mode':>16s} {'devices':>7s} {'compile s':>9s} {'run s':>9s} "

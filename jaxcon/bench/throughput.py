@@ -70,7 +70,8 @@ def batched_throughput(batch_sizes: Sequence[int] = (1, 64, 1024, 16384), steps:
 
     modes: "vmap" (`jax.jit(jax.vmap(rollout))`), "batched_rollout" (`jc.batched_rollout` with its defaults,
     or `chunk`), "one_piece" (`jc.batched_rollout(chunk=batch)`: the whole batch in one piece: packed
-    sweeps on the CPU, unrolled ones on an accelerator (`batch.sweep_mode`); skipped where that is the default already, and for models batched with vmap),
+    sweeps on the CPU, unrolled ones on an accelerator (`batch.sweep_mode`); skipped where that is the default
+    already, and for models batched with vmap),
     "reference" (the plain batch-minor PGS of `bench.references.batch_minor_pgs`, double pendulum and PGS only;
     skipped otherwise).
 

@@ -150,6 +150,11 @@ def pair_slots(ct: ContactTopology, n: int, partners=None):
     return ia, ja, partners >= 0, (ia.reshape(-1), ja.reshape(-1))
 
 
+def pair_partners(pairs: Optional[Rows]):
+    """A grid model's partners [n, K] of the pair rows (`pair_total`'s `partners`), None for listed pairs."""
+    return pairs.j if pairs is not None and pairs.i is not None else None
+
+
 def pair_index(ct: ContactTopology, pairs: Rows):
     """The pair rows' particles, flat: (i, j) [P] internal indices (grid rows: empty slots point at 0 and have
     k = 0)."""
@@ -799,7 +804,6 @@ def pair_total(ct, w, P, sign_i, index=None, partners=None):  # noqa: D401
         return (sign_i * wf * own).at[:, ja].add(wf[ja] * Pf)
     out = jnp.zeros((dim, wf.shape[0]), P.dtype)
     return out.at[:, ja].add(wf[ja] * Pf).at[:, ia].add(sign_i * wf[ia] * Pf)
-
 
 
 # ---- rows at position level (XPBD, Penalty) and of XPBD's velocity pass ---------------------------------

@@ -33,6 +33,7 @@ from jaxcon.core.contact_rows import (
     overlap_normal,
     pair_block,
     pair_index,
+    pair_partners,
     pair_total,
     phase_target,
     slot_rows,
@@ -286,7 +287,7 @@ def jacobi_pass(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, imp: Impulses, 
             k = L.safe_reciprocal(cf[ia] * wf[ia] + cf[ja] * wf[ja]).reshape(shape) * (pairs.k > 0).astype(v.dtype)
         vrel = (vf[:, ja] - vf[:, ia]).reshape(pairs.n.shape)
         P, pn, pt = _solve_row(vrel, pairs._replace(k=k), mu, pn, pt)
-        dv = dv + pair_total(ct, w, P, -1.0, index, pairs.j if pairs.i is not None else None).reshape(v.shape)
+        dv = dv + pair_total(ct, w, P, -1.0, index, pair_partners(pairs)).reshape(v.shape)
     return dv, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
 
@@ -334,8 +335,7 @@ def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, 
     if pairs is not None:
         pn, pt = project(pairs, pn, pt)
         P = pairs.n * pn + pt
-        v = v + pair_total(ct, w, P, -1.0, pair_index(ct, pairs), pairs.j if pairs.i is not None else None
-                           ).reshape(v.shape)
+        v = v + pair_total(ct, w, P, -1.0, pair_index(ct, pairs), pair_partners(pairs)).reshape(v.shape)
     return v, prev._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
 
