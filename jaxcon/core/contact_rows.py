@@ -333,8 +333,7 @@ class RoundBlock:
 
 
 class SlotBlock:
-    """A grid model's pair rows, [..., n, K] leaves, with their `partners` [n, K]: slot by slot in a `lax.scan`
-    (in groups of `SLOT_GROUP`, a group run only where one of its slots holds a row);
+    """A grid model's pair rows, [..., n, K] leaves, with their `partners` [n, K]: slot by slot in a `lax.scan`;
     a slot no particle uses (the grid fills each particle's slots from the first, so the last ones are often empty
     everywhere) is skipped. `major`: the multipliers (the second half of the rows) are slot-major already,
     [K, ..., n] (`in_solve`), and come back that way. `rows_major`: so are the partners ([K, n]) and the rows'
@@ -370,41 +369,8 @@ class SlotBlock:
         if not self.major:
             lam = jax.tree.map(_slots_first, lam)
         sparse = None if self.sparse is None else tuple(self.sparse)
-        xs = (partners, (data, lam), sparse)
-        K, G = partners.shape[0], SLOT_GROUP
-        if G and K > G and K % G == 0:
-            # groups of G slots, each run only where one of its slots holds a row: the grid fills each particle's
-            # slots from the first, so the last groups are often empty everywhere and then cost one cond each
-            grouped = jax.tree.map(lambda a: a.reshape((K // G, G) + a.shape[1:]), xs)
-
-            def group(carry, g):
-                return lax.cond(_any_used(g[0]), lambda c: lax.scan(body, c, g), lambda c: (c, g[1][1]), carry)
-            carry, out = lax.scan(group, carry, grouped)
-            out = jax.tree.map(lambda a: a.reshape((K,) + a.shape[2:]), out)
-        else:
-            carry, out = lax.scan(body, carry, xs)
+        carry, out = lax.scan(body, carry, (partners, (data, lam), sparse))
         return carry, out if self.major else jax.tree.map(_slots_last, out)
-
-
-#: `SlotBlock` runs a grid's slots in groups of SLOT_GROUP, a group only where one of its slots holds a row (one
-#: `lax.cond` for the group, around a scan of its slots): at rest a disc pile uses four of its eight slots (the
-#: 1024-disc box: 1016, 977, 766 and 38 rows), and a cloth with room for 32 partners fewer than half, so the empty
-#: groups cost a cond each, not a skipped branch and the scan's slicing per slot. 0: all slots in one scan.
-SLOT_GROUP = 4
-
-
-def _any_used(partners):
-    """Whether any of these slots ([K, n] partners) holds a row; under `jax.vmap`, whether any copy's does
-    (unbatched, so that the `lax.cond` it chooses runs one branch, not both and a select)."""
-    @jax.custom_batching.custom_vmap
-    def used(p):
-        return jnp.any(p >= 0)
-
-    @used.def_vmap
-    def _batched(axis_size, in_batched, p):
-        return jnp.any(p >= 0), False
-
-    return used(partners)
 
 
 def _slot_branch(count, cap: int):
