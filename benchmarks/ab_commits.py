@@ -57,6 +57,8 @@ def main(argv=None):
     p.add_argument("--solver", default="PGS(10)")
     p.add_argument("--rounds", type=int, default=31)
     a = p.parse_args(argv)
+    # the working tree's package, not an installed copy (this script's folder, not the root, is on the path)
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import jaxcon as jc
     with tempfile.TemporaryDirectory() as root:
         old = importlib.import_module(package_at(a.rev, root))
@@ -73,7 +75,7 @@ def main(argv=None):
             t = time.perf_counter()
             c = jax.jit(lambda s, m=m, so=solver, lib=lib: lib.rollout(m, s, so, 1 / 60, 15, save_every=15)[0])
             c = c.lower(s).compile()
-            print(f"{lib.__name__}: compile {time.perf_counter() - t:.2f} s")
+            print(f"{lib.__name__} ({os.path.dirname(lib.__file__)}): compile {time.perf_counter() - t:.2f} s")
             jax.block_until_ready(c(s))
             runs.append((c, s))
         wall, cpu = [[], []], [[], []]

@@ -537,6 +537,22 @@ def rank_true(keep):
     return (before[:, :, None] + within.astype(jnp.int32)).reshape(n, W * 32)[:, :M]
 
 
+def computed_once(fn, args, witness=None):
+    """``fn(*args)``, with its arguments and its results each computed once: inside a `lax.cond` whose predicate
+    is always true (`witness`: an integer array whose first entry is >= -1, such as partners with -1 for none)
+    but not known to XLA (an index clipped at 0 is known: XLA folds the test, and the conditional with it).
+    XLA's CPU backend fuses an elementwise producer into every fusion that reads it, so a row update whose
+    results feed a scatter, a subtraction and the multipliers' update was computed again in each of them; a
+    conditional's operands and results are buffers of their own. With `witness` None, or under
+    `vmap` with a batched witness (the conditional then runs as a select), it is ``fn(*args)`` as written. The
+    same values and derivatives either way (docs/contacts.md: the disc box's step in 0.92 to 0.95 of the time)."""
+    if witness is None:
+        return fn(*args)
+    zero = jax.eval_shape(fn, *args)
+    return lax.cond(witness.reshape(-1)[0] >= -1, lambda a: fn(*a),
+                    lambda a: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), zero), args)
+
+
 def first_true(j, keep, K: int, fill: int = -1):
     """The first K entries of each row of j [n, M] where keep [n, M] (bool), in order, `fill` after the last:
     ([n, K] int32, each entry's rank among its row's kept entries [n, M] (`rank_true`))."""

@@ -145,7 +145,7 @@ def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impuls
             if c.split:
                 act = ((ln > 0) | (ln + (f.target - _dot(vrel, f.n)) * f.k > 0)) & (f.k > 0)
                 f = f._replace(k=c.split_mass(w, act.astype(v.dtype)) * (f.k > 0).astype(v.dtype))
-            P, ln, lt = _solve_row(vrel, f, mu, ln, lt, s)
+            P, ln, lt = L.computed_once(_solve_row, (vrel, f, mu, ln, lt, s), getattr(c, "partner", None))
             return c.apply(w, v, P), (ln, lt)
         return update
 
@@ -440,7 +440,8 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
             over = jnp.maximum((1 - slop) * c.both(rf) - dist, 0)
             if c.split:
                 over = over * (rows[0] > 0)
-                P = n * (over * c.split_mass(wf, (over > 0).astype(xf.dtype)))
+                P = L.computed_once(lambda n, over, k: n * (over * k),
+                                    (n, over, c.split_mass(wf, (over > 0).astype(xf.dtype))), c.partner)
             else:
                 P = n * (over * L.safe_reciprocal(c.both(wf)) * c.valid)
             return c.apply(wf, xf, P), None
