@@ -333,7 +333,9 @@ def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, 
     if pairs is not None and pairs.i is not None:
         pn, pt = carry_slots(prev, pairs.j)
     if pairs is not None:
-        pn, pt = project(pairs, pn, pt)
+        # projected once (`layout.computed_once`): the slot-major move of the impulses for the solve, the scatter of
+        # their impulses and the sum over each particle's own slots each computed the projection again
+        pn, pt = L.computed_once(project, (pairs, pn, pt), pair_partners(pairs))
         P = pairs.n * pn + pt
         v = v + pair_total(ct, w, P, -1.0, pair_index(ct, pairs), pair_partners(pairs)).reshape(v.shape)
     return v, prev._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
