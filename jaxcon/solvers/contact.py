@@ -286,7 +286,8 @@ def jacobi_pass(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, imp: Impulses, 
             cf, wf = count.reshape(-1), w.reshape(-1)
             k = L.safe_reciprocal(cf[ia] * wf[ia] + cf[ja] * wf[ja]).reshape(shape) * (pairs.k > 0).astype(v.dtype)
         vrel = (vf[:, ja] - vf[:, ia]).reshape(pairs.n.shape)
-        P, pn, pt = _solve_row(vrel, pairs._replace(k=k), mu, pn, pt)
+        P, pn, pt = L.computed_once(_solve_row, (vrel, pairs._replace(k=k), mu, pn, pt),
+                                    pair_partners(pairs))
         dv = dv + pair_total(ct, w, P, -1.0, index, pair_partners(pairs)).reshape(v.shape)
     return dv, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
@@ -553,7 +554,8 @@ def position_pass(cs: ContactSystem, w, x, p, imp: Impulses, partners=None):
                 k = c.split_mass(wf, act) * act
             else:
                 k = L.safe_reciprocal(c.both(wf)) * c.valid
-            P, ln, lt = _position_row(disp, n, C, k, mu, ln, lt)
+            P, ln, lt = L.computed_once(_position_row, (disp, n, C, k, mu, ln, lt),
+                                        getattr(c, "partner", None))
             return c.apply(wf, pf, P), (ln, lt)
 
         pf, (pn, pt) = L.each_colour(pair_block(ct, partners), pair, p.reshape(dim, -1), (None, (pn, pt)))
