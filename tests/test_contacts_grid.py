@@ -494,3 +494,40 @@ def test_sparse_slots_under_vmap(monkeypatch):
     assert batched.dtype == jnp.float64 and not np.allclose(batched[0], batched[1])
     monkeypatch.undo()
     jax.clear_caches()
+
+
+def test_computed_once_is_the_function_it_wraps():
+    """`layout.computed_once` runs a row update inside a conditional that is always taken, so that XLA's CPU backend
+    computes its results once instead of in every fusion that reads them (docs/contacts.md). It must be the wrapped
+    function: the same values and derivatives (reverse and forward mode), under `vmap` with a batched witness (a
+    select) too, also where the witness's first entry is -1 (an empty grid slot); and the conditional must be in
+    the compiled program, or the change measured nothing."""
+    from jaxcon.core import layout as L
+
+    def fn(a, b):
+        r = jnp.sqrt(a * a + b * b)
+        return a * jnp.sin(b) / (1 + r), jnp.maximum(r - 1, 0), (a > b).astype(jnp.int32)
+
+    a = jnp.linspace(-1.0, 2.0, 7, dtype=jnp.float64)
+    b = jnp.linspace(0.5, -1.5, 7, dtype=jnp.float64)
+    for first in (-1, 0, 5):
+        witness = jnp.array([first, 3, -1], jnp.int32)
+        got, want = L.computed_once(fn, (a, b), witness), fn(a, b)
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+
+        def loss(a, b, once):
+            out = L.computed_once(fn, (a, b), witness) if once else fn(a, b)
+            return jnp.sum(out[0] ** 2) + jnp.sum(out[1])
+
+        for argnums in (0, 1):
+            np.testing.assert_allclose(jax.grad(loss, argnums)(a, b, True), jax.grad(loss, argnums)(a, b, False),
+                                       rtol=1e-14, atol=1e-15)
+        np.testing.assert_allclose(jax.jacfwd(loss)(a, b, True), jax.jacfwd(loss)(a, b, False), rtol=1e-14, atol=1e-15)
+    batched = jax.vmap(lambda a, w: L.computed_once(fn, (a, b), w))(jnp.stack([a, 2 * a]),
+                                                                   jnp.array([[-1, 0], [4, 2]], jnp.int32))
+    np.testing.assert_allclose(batched[0][1], fn(2 * a, b)[0], rtol=1e-15)
+    np.testing.assert_allclose(batched[1][0], fn(a, b)[1], rtol=1e-15)
+    program = jax.jit(lambda a, w: L.computed_once(fn, (a, b), w)[0]).lower(a, jnp.zeros(3, jnp.int32))
+    assert "conditional" in program.compile().as_text()
+    assert "conditional" not in jax.jit(lambda a: L.computed_once(fn, (a, b))[0]).lower(a).compile().as_text()
