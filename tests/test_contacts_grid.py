@@ -531,3 +531,14 @@ def test_computed_once_is_the_function_it_wraps():
     program = jax.jit(lambda a, w: L.computed_once(fn, (a, b), w)[0]).lower(a, jnp.zeros(3, jnp.int32))
     assert "conditional" in program.compile().as_text()
     assert "conditional" not in jax.jit(lambda a: L.computed_once(fn, (a, b))[0]).lower(a).compile().as_text()
+
+
+def test_sort_rows_is_jnp_sort():
+    """`layout.sort_rows` (the grid's per-step candidate order, elementwise for short rows) equals `jnp.sort` along
+    the rows, with repeated entries (an empty slot's key) and negative ones, and for long rows (the fallback)."""
+    from jaxcon.core import layout as L
+    rng = np.random.default_rng(3)
+    for M in (1, 2, 8, 27, 40):
+        key = rng.integers(-5, 12, (64, M)).astype(np.int32)
+        key[rng.random(key.shape) < 0.3] = 99
+        np.testing.assert_array_equal(np.asarray(jax.jit(L.sort_rows)(key)), np.sort(key, axis=1))

@@ -152,7 +152,7 @@ def _scan_order(partners, xf, reach):
     off = c[:, jc] - c[:, :, None] + 1                                              # [dim, n, K], 0 to 2
     key = sum(off[a] * 3 ** (dim - 1 - a) for a in range(dim)) * n + jc
     end = 3 ** dim * n
-    key = jnp.sort(jnp.where(partners >= 0, jnp.clip(key, 0, end - 1), end), axis=1)
+    key = L.sort_rows(jnp.where(partners >= 0, jnp.clip(key, 0, end - 1), end))
     return jnp.where(key < end, key % n, -1).astype(jnp.int32)
 
 
