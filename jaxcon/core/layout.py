@@ -543,10 +543,12 @@ def computed_once(fn, args, witness=None):
     but not known to XLA (an index clipped at 0 is known: XLA folds the test, and the conditional with it).
     XLA's CPU backend fuses an elementwise producer into every fusion that reads it, so a row update whose
     results feed a scatter, a subtraction and the multipliers' update was computed again in each of them; a
-    conditional's operands and results are buffers of their own. With `witness` None, or under
-    `vmap` with a batched witness (the conditional then runs as a select), it is ``fn(*args)`` as written. The
-    same values and derivatives either way (docs/contacts.md: the disc box's step in 0.92 to 0.95 of the time)."""
-    if witness is None:
+    conditional's operands and results are buffers of their own. With `witness` None, under `vmap` with a
+    batched witness (the conditional then runs as a select), or where JAX's default backend is not the CPU (XLA's
+    GPU backend has multi-output fusions, and a GPU conditional waits for its predicate on the host), it is
+    ``fn(*args)`` as written. The same values and derivatives either way (docs/contacts.md: the disc box's step
+    in 0.90 to 0.94 of the time)."""
+    if witness is None or jax.default_backend() != "cpu":
         return fn(*args)
     zero = jax.eval_shape(fn, *args)
     return lax.cond(witness.reshape(-1)[0] >= -1, lambda a: fn(*a),
