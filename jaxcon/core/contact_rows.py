@@ -158,7 +158,7 @@ def pair_partners(pairs: Optional[Rows]):
 def pair_index(ct: ContactTopology, pairs: Rows):
     """The pair rows' particles, flat: (i, j) [P] internal indices (grid rows: empty slots point at 0 and have
     k = 0)."""
-    if pairs is not None and pairs.i is not None:
+    if pair_partners(pairs) is not None:
         return pairs.i.reshape(-1), jnp.maximum(pairs.j, 0).reshape(-1)
     return ct.i.array.reshape(-1), ct.j.array.reshape(-1)
 

@@ -513,7 +513,7 @@ def solve_phases(sys, v_free, obs, pairs, iterations: int, carry, body, slot_maj
     if sys.contact is None:
         one_iteration = body(None, None)
         return lax.fori_loop(0, iterations, lambda _, c: one_iteration(c), carry, unroll=sys.topology.unroll)
-    major = slot_major and pairs is not None and pairs.i is not None
+    major = slot_major and contact_rows.pair_partners(pairs) is not None
     split = slot_major and obs is not None and obs.sel is not None
     if major or split:
         view = obs.gap.shape[1:] if split else None

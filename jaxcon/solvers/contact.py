@@ -286,9 +286,9 @@ def jacobi_pass(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, imp: Impulses, 
             cf, wf = count.reshape(-1), w.reshape(-1)
             k = L.safe_reciprocal(cf[ia] * wf[ia] + cf[ja] * wf[ja]).reshape(shape) * (pairs.k > 0).astype(v.dtype)
         vrel = (vf[:, ja] - vf[:, ia]).reshape(pairs.n.shape)
-        P, pn, pt = L.computed_once(_solve_row, (vrel, pairs._replace(k=k), mu, pn, pt),
-                                    pair_partners(pairs))
-        dv = dv + pair_total(ct, w, P, -1.0, index, pair_partners(pairs)).reshape(v.shape)
+        partners = pair_partners(pairs)
+        P, pn, pt = L.computed_once(_solve_row, (vrel, pairs._replace(k=k), mu, pn, pt), partners)
+        dv = dv + pair_total(ct, w, P, -1.0, index, partners).reshape(v.shape)
     return dv, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
 
@@ -331,14 +331,15 @@ def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, 
         for q in range(P.shape[0]):       # obstacle by obstacle, written out (see `carry_slots`)
             v = v + w * P[q]
     pn, pt = prev.pair_n, prev.pair_t
-    if pairs is not None and pairs.i is not None:
-        pn, pt = carry_slots(prev, pairs.j)
+    partners = pair_partners(pairs)
+    if partners is not None:
+        pn, pt = carry_slots(prev, partners)
     if pairs is not None:
         # projected once (`layout.computed_once`): the slot-major move of the impulses for the solve, the scatter of
         # their impulses and the sum over each particle's own slots each computed the projection again
-        pn, pt = L.computed_once(project, (pairs, pn, pt), pair_partners(pairs))
+        pn, pt = L.computed_once(project, (pairs, pn, pt), partners)
         P = pairs.n * pn + pt
-        v = v + pair_total(ct, w, P, -1.0, pair_index(ct, pairs), pair_partners(pairs)).reshape(v.shape)
+        v = v + pair_total(ct, w, P, -1.0, pair_index(ct, pairs), partners).reshape(v.shape)
     return v, prev._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
 
@@ -451,7 +452,7 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
 
         return L.each_colour(block, colour, x.reshape(dim, -1), (kk, None))[0].reshape(shape)
 
-    if pairs is not None and pairs.i is not None:          # a grid's slots, read by every pass: moved once
+    if pair_partners(pairs) is not None:          # a grid's slots, read by every pass: moved once
         block, kk = slot_rows(pairs.j, pairs.k, pairs.slots)
     else:
         block, kk = pair_block(ct), None
