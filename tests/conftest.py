@@ -128,6 +128,11 @@ SLOW = {
     # the obstacle selection under SoftStep, which sweeps its obstacle rows with PGS's code (contact.sweep):
     # PGS(10) and PGS with substeps stay
     "tests/test_contacts_piles.py::test_obstacle_row_selection_changes_no_result[Soft]",
+    # Direct's and SoftStep's grid slots: both sweep them with PGS's code (contact.sweep); PGS with and without
+    # substeps stay in both tests
+    "tests/test_contacts_grid.py::test_slot_major_impulses_change_no_result[Direct-8]",
+    "tests/test_contacts_grid.py::test_sparse_slots_change_no_result[Direct]",
+    "tests/test_contacts_grid.py::test_sparse_slots_change_no_result[SoftStep]",
 }
 
 

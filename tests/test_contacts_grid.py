@@ -466,7 +466,7 @@ def test_sparse_slots_under_vmap(monkeypatch):
     slot is empty in every copy, else swept whole), not a select of every branch. A batch of two copies of the
     36-disc scene, with their velocities apart, equals each copy's own rollout with every slot swept whole
     (`SPARSE_SLOT` 0), in float64 to 1e-12 over two steps, and so do its gradients with respect to the start
-    velocities. Two steps, not six: programs that round differently (a batch and a single copy; gathered and
+    velocities (the reference's in forward mode). Two steps, not six: programs that round differently (a batch and a single copy; gathered and
     whole slots) are 1e-16 apart until a contact switches, and up to 3e-5 after it, under the suite's XLA flags
     with or without sparse slots; in this scene one switches in step 3 (step 4 or 5 before speculative rows
     stopped pushing, `contact_rows._targets`)."""
@@ -488,9 +488,10 @@ def test_sparse_slots_under_vmap(monkeypatch):
     assert np.any((rows > 0) & (rows <= 29))               # a slot each copy alone would gather
     monkeypatch.setattr(contact_rows, "SPARSE_SLOT", 0)
     jax.clear_caches()
+    slope = jax.jit(lambda s: jax.jvp(height, (s,), (jnp.ones_like(s),))[1])     # forward mode: half the compile
     for k in range(2):
         np.testing.assert_allclose(np.asarray(batched[k]), np.asarray(final_x(scale[k])), rtol=0, atol=1e-12)
-        np.testing.assert_allclose(float(grads[k]), float(jax.grad(height)(scale[k])), rtol=1e-10)
+        np.testing.assert_allclose(float(grads[k]), float(slope(scale[k])), rtol=1e-10)
     assert batched.dtype == jnp.float64 and not np.allclose(batched[0], batched[1])
     monkeypatch.undo()
     jax.clear_caches()
