@@ -100,11 +100,21 @@ def test_obstacle_row_selection_changes_no_result(monkeypatch, solver, reverse):
     without it, and with a selection of nothing (every sweep falls back), and so are derivatives through the 8
     steps of the landing (from step 20) along one direction (the bottom row's velocities): forward mode, and for
     PGS(10) the selection's reverse-mode gradient (its compile is most of this test's time), against the whole
-    obstacle's forward mode. To rounding (the trajectories here
-    bitwise; XLA may contract the gathered rows' arithmetic into fused multiply-adds differently from the whole
-    obstacle's, 1 ulp, which a pile then amplifies: a review found that on other scenes). Each mode compiles its
-    own program: rollout's is cached per model and solver, so the test clears JAX's caches and checks that the
-    selection was traced where it should be."""
+    obstacle's forward mode. To rounding (the trajectories here bitwise; XLA may contract the gathered rows'
+    arithmetic into fused multiply-adds differently from the whole obstacle's, 1 ulp, which a pile then
+    amplifies: a review found that on other scenes, and a GPU does it here). Each mode compiles its own program:
+    rollout's is cached per model and solver, so the test clears JAX's caches and checks that the selection was
+    traced where it should be."""
+    with jax.default_device(jax.devices("cpu")[0]):
+        _obstacle_selection_on_the_cpu(monkeypatch, solver, reverse)
+
+
+def _obstacle_selection_on_the_cpu(monkeypatch, solver, reverse):
+    """The test above, on XLA's CPU also where the suite runs on a GPU. The CPU's programs agree bitwise. A GPU's
+    code generator contracts multiply-adds as it sees fit, differently in the gathered rows and the whole obstacle,
+    and the landing pile amplifies the last bit: on an H200 (jax 0.11.2, float64) the landings under
+    PGS(5, substeps=2) differed by up to 6e-4 m, and still differed with XLA's deterministic GPU ops
+    (tests/conftest.py)."""
     from jaxcon.core import contact_rows
     model, state = jc.scenes.disc_box(300, collide="grid")
     d = np.random.default_rng(3).normal(size=state.v.shape)
@@ -133,13 +143,9 @@ def test_obstacle_row_selection_changes_no_result(monkeypatch, solver, reverse):
     assert float(np.abs(out["off"][0][-1, :, 1]).min()) < 0.51             # the bottom row has landed
     free_fall = 8 / 60 * float(jnp.sum(d[:, 1]))                           # the derivative without contacts
     assert abs(float(out["off"][2]) - free_fall) > 0.1 * abs(free_fall), (out["off"][2], free_fall)
-    # XLA's CPU programs are deterministic; a GPU's scatter-adds add in no fixed order, which the landing pile
-    # amplifies: on an H200 (jax 0.11.2, float64) three runs of one program landed up to 1.6e-6 m apart under
-    # PGS(10) and 3.0e-5 m under PGS(5, substeps=2)
-    tol = 1e-9 if jax.default_backend() == "cpu" else 1e-5
     for mode in ("on", "none"):
         for a, b in zip(out[mode], out["off"]):
-            np.testing.assert_allclose(a, b, rtol=tol, atol=tol * max(1.0, float(np.abs(b).max())))
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * max(1.0, float(np.abs(b).max())))
 
 
 @pytest.mark.parametrize("dim", [2, 3])
