@@ -30,6 +30,7 @@ part box 100 python3 benchmarks/gpu_extra.py box $BOXS $BOX
 part billiards 50 python3 benchmarks/gpu_extra.py billiards $BILL
 part sweeps 60 python3 benchmarks/gpu_sweeps.py $BATCH
 # a GPU subset of the suite (x64, as the suite runs). -v names each failure as it happens: on the H200 a run cut
-# off at its limit ended before pytest's summary, and its one failure went unnamed
-XLA_PYTHON_CLIENT_PREALLOCATE=false part tests 110 python3 -m pytest -v --tb=line -n 8 -p no:cacheprovider \
+# off at its limit ended before pytest's summary, and its one failure went unnamed; these files took 213 s on an
+# H200 with 8 workers (2026-11-27; docs/batching.md, "The tests on a GPU")
+XLA_PYTHON_CLIENT_PREALLOCATE=false part tests 280 python3 -m pytest -v --tb=line -n 8 -p no:cacheprovider \
   -p no:benchmark tests/test_batching.py tests/test_contacts_piles.py tests/test_core.py
