@@ -134,6 +134,10 @@ SLOW = {
     # the obstacle selection under SoftStep, which sweeps its obstacle rows with PGS's code (contact.sweep):
     # PGS(10) and PGS with substeps stay
     "tests/test_contacts_piles.py::test_obstacle_row_selection_changes_no_result[Soft]",
+    # reverse-mode derivatives where the default run checks forward mode on the same program (their compile is
+    # most of these tests' time); reverse mode through the grid stays in test_grid_gradients_equal_central_differences
+    "tests/test_contacts_piles.py::test_obstacle_row_selection_changes_no_result[PGS-reverse]",
+    "tests/test_contacts_grid.py::test_sparse_slots_under_vmap[reverse]",
     # Direct's and SoftStep's grid slots: both sweep them with PGS's code (contact.sweep); PGS with and without
     # substeps stay in both tests
     "tests/test_contacts_grid.py::test_slot_major_impulses_change_no_result[Direct-8]",

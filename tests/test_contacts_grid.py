@@ -461,37 +461,43 @@ def test_sparse_slots_change_no_result(solver, monkeypatch):
     assert np.any((rows > 0) & (rows <= 29)) and np.any(rows > 29)
 
 
-def test_sparse_slots_under_vmap(monkeypatch):
+@pytest.mark.parametrize("mode", ["forward", "reverse"])
+def test_sparse_slots_under_vmap(monkeypatch, mode):
     """Under `jax.vmap` a slot's branch is one for every copy (`contact_rows._slot_branch`: skipped where the
     slot is empty in every copy, else swept whole), not a select of every branch. A batch of two copies of the
     36-disc scene, with their velocities apart, equals each copy's own rollout with every slot swept whole
-    (`SPARSE_SLOT` 0), in float64 to 1e-12 over two steps, and so do its gradients with respect to the start
-    velocities (the reference's in forward mode). Two steps, not six: programs that round differently (a batch and a single copy; gathered and
-    whole slots) are 1e-16 apart until a contact switches, and up to 3e-5 after it, under the suite's XLA flags
-    with or without sparse slots; in this scene one switches in step 3 (step 4 or 5 before speculative rows
-    stopped pushing, `contact_rows._targets`)."""
+    (`SPARSE_SLOT` 0), in float64 to 1e-12 over two steps, and so do its derivatives with respect to the start
+    velocities' scale: batched in forward mode, or in reverse mode (the extended set: its compile is three
+    quarters of this test's time), against each copy's own in forward mode. Two steps, not six: programs that
+    round differently (a batch and a single copy; gathered and whole slots) are 1e-16 apart until a contact
+    switches, and up to 3e-5 after it, under the suite's XLA flags with or without sparse slots; in this scene
+    one switches in step 3 (step 4 or 5 before speculative rows stopped pushing, `contact_rows._targets`)."""
     from jaxcon.core import contact_rows
     n = 36
     model, state = _sliding_discs(n)
     scale = jnp.array([1.0, 0.5])
 
-    def final_x(s):
-        return jc.rollout(model, state.replace(v=state.v * s), jc.PGS(10), 1 / 60, 2)[0].x
+    def run(s):
+        final, traj = jc.rollout(model, state.replace(v=state.v * s), jc.PGS(10), 1 / 60, 2)
+        return final.x, traj.contact_partners
 
     def height(s):
-        return jnp.sum(final_x(s)[:, 1])
+        return jnp.sum(run(s)[0][:, 1])
+
+    def slope(s):
+        return jax.jvp(height, (s,), (jnp.ones_like(s),))[1]
 
     monkeypatch.setattr(contact_rows, "SPARSE_SLOT", 1.25)
     jax.clear_caches()
-    batched, grads = jax.vmap(final_x)(scale), jax.vmap(jax.grad(height))(scale)
-    rows = np.sum(np.asarray(jc.rollout(model, state, jc.PGS(10), 1 / 60, 2)[1].contact_partners) >= 0, axis=1)
+    (batched, partners), grads = jax.vmap(run)(scale), jax.vmap(slope if mode == "forward" else jax.grad(height))(scale)
+    rows = np.sum(np.asarray(partners[0]) >= 0, axis=1)
     assert np.any((rows > 0) & (rows <= 29))               # a slot each copy alone would gather
     monkeypatch.setattr(contact_rows, "SPARSE_SLOT", 0)
     jax.clear_caches()
-    slope = jax.jit(lambda s: jax.jvp(height, (s,), (jnp.ones_like(s),))[1])     # forward mode: half the compile
+    one, one_slope = jax.jit(lambda s: run(s)[0]), jax.jit(slope)
     for k in range(2):
-        np.testing.assert_allclose(np.asarray(batched[k]), np.asarray(final_x(scale[k])), rtol=0, atol=1e-12)
-        np.testing.assert_allclose(float(grads[k]), float(slope(scale[k])), rtol=1e-10)
+        np.testing.assert_allclose(np.asarray(batched[k]), np.asarray(one(scale[k])), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(float(grads[k]), float(one_slope(scale[k])), rtol=1e-10)
     assert batched.dtype == jnp.float64 and not np.allclose(batched[0], batched[1])
     monkeypatch.undo()
     jax.clear_caches()

@@ -91,18 +91,18 @@ def _with_selection(monkeypatch, mode):
         monkeypatch.setattr(contact_rows, "select_obstacles", nothing)
 
 
-@pytest.mark.parametrize("solver, reverse", [(jc.PGS(10), True), (jc.PGS(5, substeps=2), False), (jc.SoftStep(), False)],
-                         ids=["PGS", "PGS-sub", "Soft"])
+@pytest.mark.parametrize("solver, reverse", [(jc.PGS(10), False), (jc.PGS(10), True), (jc.PGS(5, substeps=2), False),
+                                             (jc.SoftStep(), False)], ids=["PGS", "PGS-reverse", "PGS-sub", "Soft"])
 def test_obstacle_row_selection_changes_no_result(monkeypatch, solver, reverse):
     """A model of 256 or more particles sweeps an obstacle's rows only within reach of it (`select_obstacles`),
     checking in every sweep that the rows left out would not change; else it sweeps the whole obstacle. The
     300-disc box landing (40 steps, float64: the bottom row lands at step 27) is the same with the selection,
     without it, and with a selection of nothing (every sweep falls back), and so are derivatives through the 8
-    steps of the landing (from step 20) along one direction (the bottom row's velocities): forward mode, and for
-    PGS(10) the selection's reverse-mode gradient (its compile is most of this test's time), against the whole
-    obstacle's forward mode. To rounding (the trajectories here bitwise; XLA may contract the gathered rows'
-    arithmetic into fused multiply-adds differently from the whole obstacle's, 1 ulp, which a pile then
-    amplifies: a review found that on other scenes, and a GPU does it here). Each mode compiles its own program:
+    steps of the landing (from step 20) along one direction (the bottom row's velocities): forward mode, or (the
+    extended set) PGS(10)'s reverse-mode gradient with the selection (its compile is most of that variant's
+    time), against the whole obstacle's forward mode. To rounding (the trajectories here bitwise; XLA may
+    contract the gathered rows' arithmetic into fused multiply-adds differently from the whole obstacle's, 1 ulp,
+    which a pile then amplifies: a review found that on other scenes, and a GPU does it here). Each mode compiles its own program:
     rollout's is cached per model and solver, so the test clears JAX's caches and checks that the selection was
     traced where it should be."""
     with jax.default_device(jax.devices("cpu")[0]):
