@@ -102,9 +102,9 @@ def test_obstacle_row_selection_changes_no_result(monkeypatch, solver, reverse):
     extended set) PGS(10)'s reverse-mode gradient with the selection (its compile is most of that variant's
     time), against the whole obstacle's forward mode. To rounding (the trajectories here bitwise; XLA may
     contract the gathered rows' arithmetic into fused multiply-adds differently from the whole obstacle's, 1 ulp,
-    which a pile then amplifies: a review found that on other scenes, and a GPU does it here). Each mode compiles its own program:
-    rollout's is cached per model and solver, so the test clears JAX's caches and checks that the selection was
-    traced where it should be."""
+    which a pile then amplifies: a review found that on other scenes, and a GPU does it here). Each mode compiles
+    its own program: rollout's is cached per model and solver, so the test clears JAX's caches and checks that the
+    selection was traced where it should be."""
     with jax.default_device(jax.devices("cpu")[0]):
         _obstacle_selection_on_the_cpu(monkeypatch, solver, reverse)
 
