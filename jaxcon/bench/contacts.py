@@ -6,9 +6,10 @@ N discs (R = 0.5 m, 1 kg, friction 0.5, restitution 0) in staggered rows 1 m abo
 (`jc.scenes.disc_box`) fall and come to rest; dt = 1/60 s, 8 s simulated, 10 velocity iterations everywhere:
 
 * jaxcon: `jc.scenes.disc_box(N, collide="grid")` (the neighbour grid), `jc.PGS(10)`, float32, and
-  `jc.PGS(10, substeps=2, contact_passes=1)` (its substeps share the step's one neighbour search; it rests at
-  4096 discs, where PGS(10) and Box2D do not), and `jc.PGS(10, substeps=4, contact_passes=1)`, which rests at
-  4096 discs with every overlap under 5% of R (docs/contacts.md, piles at rest);
+  `jc.PGS(8, substeps=2, contact_passes=1)` (two substeps of 8 sweeps and one position pass, sharing the step's
+  one neighbour search; it rests at 4096 discs, where PGS(10) and Box2D do not, at about PGS(10)'s cost there),
+  and `jc.PGS(10, substeps=4, contact_passes=1)`, which rests at 4096 discs with every overlap under 5% of R
+  (docs/contacts.md, piles at rest);
 * pymunk (Chipmunk 7): `space.iterations = 10`, `collision_slop = 0.005` m (Box2D's linear slop; pymunk's
   default, 0.1 m, is meant for pixels and lets discs of 0.5 m sink 20% of R into each other), friction
   sqrt(0.5) on every shape (pymunk multiplies the two shapes' values: 0.5 per contact), no sleeping;
@@ -227,10 +228,10 @@ def paired_ratio(a: _Run, b: _Run, start: int = 0) -> float:
 
 PEERS = (("Box2D", "Box2D", box2d_engine), ("pymunk", "pymunk", pymunk_engine))
 #: jaxcon's configurations, (name, iterations, substeps, contact_passes or None for the default): the issue's
-#: PGS(10); 2 substeps with one position pass each (at rest at 4096 discs, overlaps to 10% of R while landing;
-#: with the default passes it cost 2.14x Box2D against 1.85x and rested the same, docs/contacts.md); 4 substeps
-#: with one pass (every overlap under 5% of R at 4096 discs)
-JAXCON = (("jaxcon", 10, 1, None), ("jaxcon 2 substeps 1 pass", 10, 2, 1), ("jaxcon 4 substeps 1 pass", 10, 4, 1))
+#: PGS(10); 2 substeps of 8 sweeps with one position pass each (at rest at 4096 discs, overlaps to 12% of R while
+#: landing, 1.79x to 1.82x Box2D there; with 10 sweeps 1.95x to 1.99x, with 7 the pile only just rests and with 5
+#: it does not, docs/contacts.md); 4 substeps of 10 with one pass (every overlap under 5% of R at 4096 discs)
+JAXCON = (("jaxcon", 10, 1, None), ("jaxcon 2 substeps 1 pass", 8, 2, 1), ("jaxcon 4 substeps 1 pass", 10, 4, 1))
 
 
 def main(sizes=(64, 256, 1024), seconds=SECONDS):
