@@ -50,17 +50,22 @@ def _xla_knows(flag: str) -> bool:
     return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, check=False).returncode == 0
 
 
-if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", "") and \
-        os.environ.get("JAXCON_TEST_EMITTERS") != "unknown":
-    if _xla_knows(_EMITTERS):
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _EMITTERS).strip()
-    else:                                           # an XLA without the flag: the suite runs, more slowly
-        os.environ["JAXCON_TEST_EMITTERS"] = "unknown"
+def _add_xla_flag(flag: str, unknown: str):
+    """Appends `flag` to XLA_FLAGS unless XLA_FLAGS already names it or this XLA does not know it; an unknown flag
+    is remembered in the environment variable `unknown`, so the xdist workers do not try it again."""
+    if flag.split("=")[0].lstrip("-") in os.environ.get("XLA_FLAGS", "") or os.environ.get(unknown) == "unknown":
+        return
+    if _xla_knows(flag):
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()
+    else:
+        os.environ[unknown] = "unknown"
+
+
+_add_xla_flag(_EMITTERS, "JAXCON_TEST_EMITTERS")      # an XLA without the flag: the suite runs, more slowly
 # On a GPU, scatter-adds add in no fixed order (atomics), and a pile amplifies the difference in rounding: tests that
 # compare two programs bitwise would compare the order of additions instead (seen on an H200, jax 0.11.2: the kept
 # candidate lists' landing 7e-3 m apart). The suite asks XLA for deterministic GPU ops; the CPU ignores the flag.
-if "xla_gpu_deterministic_ops" not in os.environ.get("XLA_FLAGS", "") and _xla_knows(_DETERMINISTIC):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _DETERMINISTIC).strip()
+_add_xla_flag(_DETERMINISTIC, "JAXCON_TEST_DETERMINISTIC")
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:     # the controller makes it; the xdist workers inherit it
     os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxcon-test-xla-cache-")
     os.environ["JAXCON_TEST_CACHE_OWNED"] = str(os.getpid())
