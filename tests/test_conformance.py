@@ -1,0 +1,29 @@
+"""The conformance matrix at reduced sizes: every case of `jaxcon.bench.conformance` with every solver of its one
+shared list. A cell passes its case's bound against an independent reference, or the solver refuses the case
+before running with an error that names another solver; nothing is skipped. `python -m jaxcon bench
+--conformance` runs the same cases at full size and writes docs/conformance.md."""
+import pytest
+
+from jaxcon.bench import conformance
+
+CASES = conformance.load()
+CELLS = [(c.name, s) for c in CASES.values() for s in c.solvers]
+
+
+@pytest.mark.parametrize("case_name,solver", CELLS, ids=[f"{c}-{s}" for c, s in CELLS])
+def test_cell(case_name, solver):
+    cell = conformance.run_cell(case_name, solver, full=False)
+    assert cell.status in ("PASS", "REFUSED"), f"{case_name} / {solver}: {cell.value:.4g} ({cell.detail})"
+
+
+def test_every_solver_is_in_the_matrix():
+    assert set(conformance.SOLVERS) == {"Penalty", "Direct", "PGS", "Jacobi", "XPBD", "SoftStep", "RATTLE"}
+    for c in CASES.values():
+        assert c.solvers, c.name
+        assert set(c.solvers) <= set(conformance.SOLVERS), c.name
+
+
+def test_a_refusal_must_name_another_solver():
+    assert conformance.names_a_solver("use jc.PGS for this", "XPBD")
+    assert not conformance.names_a_solver("refused, sorry", "XPBD")
+    assert not conformance.names_a_solver("XPBD( is refused", "XPBD")
