@@ -70,7 +70,9 @@ class Penalty(Solver):
     u sqrt(m / stiffness). Kinetic energy is not monotone through contacts, as some of it is held in the
     contact springs (the 16-ball break at dt 1/60 gains up to 4.7% of its initial kinetic energy in a step
     with stiffness 1e5 and 30 substeps, its balls overlapping by up to 5.5% of a diameter; 0.45% and 0.2%
-    with 1e6 and 100 substeps). `stability_limit` counts the contacts too.
+    with 1e6 and 100 substeps). `stability_limit` counts the contacts too. A hard constraint set (compliance 0)
+    in a model with contacts is refused before tracing (`_check_stability`): it would be a spring of
+    `stiffness` in the set's own units, squeezed by the contacts' load (docs/constraints.md).
 
     Args:
       stiffness: spring constant k, N/m, a differentiable leaf, > 0 (rods, ropes and contacts).

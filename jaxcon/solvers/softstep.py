@@ -87,7 +87,9 @@ class SoftStep(Solver):
     its spring's static deflection, (load / effective mass) / (2 pi hertz)^2 (a particle resting on the floor:
     g / (2 pi 60)^2 = 0.07 mm at the defaults and dt 1/60). A fast impact through touching contacts (a
     billiards rack) is only carried as far as one sweep per substep reaches: the 10 m/s break needs 16
-    substeps and contact_hertz = 0.25 / h to overlap below 1% of a diameter.
+    substeps and contact_hertz = 0.25 / h to overlap below 1% of a diameter. A hard constraint set (compliance 0)
+    in a model with contacts is refused before tracing (`_check_stability`): its rows are springs of `hertz`
+    here, which contacts pressing on it squeeze (docs/constraints.md).
 
     Args:
       substeps: substeps per step, static, >= 1.
