@@ -7,6 +7,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 from jaxcon.core import contact_rows
@@ -14,6 +15,7 @@ from jaxcon.core.contact import Impulses, zero_impulses
 from jaxcon.core import grid
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
+from jaxcon.core.pytree import concrete
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import System
 from jaxcon.core.topology import Topology
@@ -114,6 +116,21 @@ def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, h, factor=1.0, gradient
     lam = tuple(R.clamp(blk, warm_rows(f, l, h)) * (f.k > 0).astype(f.k.dtype)
                 for blk, f, l in zip(sys.topology.blocks, fr, lam_ws))
     return apply_impulses(sys, v, fr, lam), lam
+
+
+def refuse_hard_sets(owner, solver: str, model, why: str) -> None:
+    """Refuse, before tracing, a model with contacts and a constraint set of compliance 0 (where the compliance is
+    known) for a solver whose hard rows give way under load (`why`): a ValueError naming the solvers that hold a
+    hard set against contacts (PGS, Direct and XPBD: docs/constraints.md, hard sets under contacts)."""
+    if model.contact is None:
+        return
+    for con in model.constraints:
+        a = concrete(con.compliance)
+        if a is not None and np.any(np.asarray(a) == 0):
+            raise ValueError(
+                f"{owner}: {solver} does not hold the hard constraint set {con.name!r} (compliance 0) against "
+                f"contacts: {why}. Use jc.PGS, jc.Direct or jc.XPBD, which hold it within 1%, or give the set a "
+                "compliance > 0")
 
 
 STABILIZATIONS = ("baumgarte", "split")

@@ -17,7 +17,7 @@ from jaxcon.core.contact import Impulses, zero_impulses
 from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact
-from jaxcon.solvers.common import run_substeps, split_contacts, with_found
+from jaxcon.solvers.common import refuse_hard_sets, run_substeps, split_contacts, with_found
 
 #: The spring tension is clipped to +- STRETCH_CLIP * stiffness * rest_length (constraints with rest length
 #: > 0). A stable run never comes near it (it is a 1000% stretch, ten times `jc.diagnose`'s violation limit);
@@ -70,7 +70,9 @@ class Penalty(Solver):
     u sqrt(m / stiffness). Kinetic energy is not monotone through contacts, as some of it is held in the
     contact springs (the 16-ball break at dt 1/60 gains up to 4.7% of its initial kinetic energy in a step
     with stiffness 1e5 and 30 substeps, its balls overlapping by up to 5.5% of a diameter; 0.45% and 0.2%
-    with 1e6 and 100 substeps). `stability_limit` counts the contacts too.
+    with 1e6 and 100 substeps). `stability_limit` counts the contacts too. A hard constraint set (compliance 0)
+    in a model with contacts is refused before tracing (`_check_stability`): it would be a spring of
+    `stiffness` in the set's own units, squeezed by the contacts' load (docs/constraints.md).
 
     Args:
       stiffness: spring constant k, N/m, a differentiable leaf, > 0 (rods, ropes and contacts).
@@ -154,9 +156,11 @@ class Penalty(Solver):
         return float(2 / omega * (np.sqrt(1 + zeta ** 2) - zeta))
 
     def _check_stability(self, owner, model, dt) -> None:
-        """Warn (before tracing, where the values are known) when a substep is above `stability_limit`: the
-        springs will then blow up. A warning, not an error: the limit is a sufficient bound, and an unstable run
-        is something one may want to see."""
+        """Refuse hard constraint sets under contacts (`common.refuse_hard_sets`); warn (before tracing, where the values
+        are known) when a substep is above `stability_limit`: the springs will then blow up. A warning, not an
+        error: the limit is a sufficient bound, and an unstable run is something one may want to see."""
+        refuse_hard_sets(owner, "Penalty", model, "it would be a spring of `stiffness` in the set's own units, "
+                         "squeezed by the contacts' load (a hard volume pressed to 70% of its height lost 8.4%)")
         vals = [concrete(a) for a in (self.stiffness, model.inv_mass, dt)]
         if any(a is None for a in vals):
             return
