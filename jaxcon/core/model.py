@@ -139,6 +139,15 @@ def _check_sets(owner, model, prefix) -> None:
                 c.particles.array, info.particles):
             raise ValueError(f"{owner}: `{prefix}constraints` set {info.name!r} differs from the one the model was "
                              "built with (particles or kind); build the model again to change them")
+        if info.fn is not None and c.fn is not info.fn:
+            raise ValueError(f"{owner}: `{prefix}constraints` set {info.name!r} has another `fn` "
+                             f"({getattr(c.fn, '__name__', c.fn)!r}, built with "
+                             f"{getattr(info.fn, '__name__', info.fn)!r}); build the model again to change a kind")
+    names = [c.name for c in cons]
+    if len(set(names)) != len(names):
+        dup = next(n for n in names if names.count(n) > 1)
+        raise ValueError(f"{owner}: `{prefix}constraints` has two sets named {dup!r}; set names must be unique "
+                         "(`jc.fit` names parameters by them)")
 
 
 def _check_contact_leaves(owner, model, prefix) -> None:
@@ -425,7 +434,7 @@ def build(
     v = _velocities(velocities, x)
     g = _gravity("build", gravity, dim, dtype)
     topo = _topology(n, dim, i, j, is_rope, colouring, grid_shape, layout, is_fixed,
-                     tuple(SetInfo(c.particles.array, c.unilateral, c.name) for c in sets))
+                     tuple(SetInfo(c.particles.array, c.unilateral, c.name, c.fn) for c in sets))
     model = Model(inv_mass, rest, g, topo, constraints=tuple(sets))
     return _with_contacts(model, State(x, v, jnp.zeros(m, dtype)), contact_pairs_, has_contacts, grid=(grid_k, skipped),
                           radius=radius, planes=planes, spheres=spheres, friction=friction, restitution=restitution,
@@ -661,8 +670,9 @@ def _constraint_sets(constraints, x, fixed, dtype) -> list:
     """`build`'s constraint sets, checked against the model (n particles, `fixed`, dim) and with their floating
     leaves in the model's dtype; names made unique."""
     n, dim = x.shape
-    out, names = [], {}
-    for c in flatten_sets(constraints):
+    out, sets = [], flatten_sets(constraints)
+    names = _unique_names([c.name for c in sets])
+    for c, name in zip(sets, names):
         p = c.particles.array
         bad = (p < 0) | (p >= n)
         if bad.any():
@@ -685,11 +695,25 @@ def _constraint_sets(constraints, x, fixed, dtype) -> list:
                              f"got {getattr(out_shape, 'shape', out_shape)}")
         if c.grad is not None:
             _check_grad(c, dim, dtype, one)
-        name = c.name if c.name not in names else f"{c.name}_{names[c.name]}"
-        names[c.name] = names.get(c.name, 0) + 1
         cast = {k: jnp.asarray(v).astype(dtype) if jnp.issubdtype(jnp.result_type(v), jnp.floating) else v
                 for k, v in c.params.items()}
         out.append(c.replace(params=cast, compliance=jnp.asarray(c.compliance).astype(dtype), name=name))
+    return out
+
+
+def _unique_names(names) -> list:
+    """Each set's name, unique: a name's first set keeps it, a repeat becomes "<name>_<k>" with the smallest
+    k >= 1 that no set is named (so "d", "d", "d_1" give "d", "d_2", "d_1")."""
+    given, taken, out = set(names), set(), []
+    for name in names:
+        new, k = name, 1
+        while new in taken:
+            new = f"{name}_{k}"
+            while new in given or new in taken:
+                k += 1
+                new = f"{name}_{k}"
+        taken.add(new)
+        out.append(new)
     return out
 
 
