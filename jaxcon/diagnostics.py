@@ -68,10 +68,11 @@ def _energy(model: Model, x, v):
     return _kinetic_energy(model, v) + pe
 
 
-def _set_values(model: Model, x) -> list:
-    """C of every row of each `jc.Constraint` set at positions x [..., n, dim]: a list of [..., m_set], 0 where
-    C is not finite at finite positions (a degenerate configuration, where the solvers leave the row inactive
-    too); NaN where the row's positions are not finite (a diverged run stays visible)."""
+def _set_values(model: Model, x, degenerate=0.0) -> list:
+    """C of every row of each `jc.Constraint` set at positions x [..., n, dim]: a list of [..., m_set],
+    `degenerate` where C is not finite at finite positions (a degenerate configuration, where the solvers leave
+    the row inactive: NaN for `violation`, so an inactive row is not reported as satisfied; 0 for the energy);
+    NaN where the row's positions are not finite (a diverged run stays visible)."""
     out = []
     for c in model.constraints:
         xs = x[..., c.particles.array, :]                      # [..., m, k, dim]
@@ -80,7 +81,7 @@ def _set_values(model: Model, x) -> list:
             f = jax.vmap(f, in_axes=(0, None))
         C = f(xs, c.params)
         sane = jnp.all(jnp.isfinite(xs), axis=(-1, -2))
-        out.append(jnp.where(jnp.isfinite(C), C, jnp.where(sane, 0, jnp.nan)))
+        out.append(jnp.where(jnp.isfinite(C), C, jnp.where(sane, degenerate, jnp.nan)))
     return out
 
 
@@ -120,7 +121,7 @@ def _violation(model: Model, x):
     err = jnp.where(t.is_rope, jnp.maximum(err, 0), jnp.abs(err))
     L = jnp.asarray(model.rest_length)
     parts = [err / jnp.where(L > 0, L, 1)]
-    for c, C in zip(model.constraints, _set_values(model, x)):
+    for c, C in zip(model.constraints, _set_values(model, x, jnp.nan)):
         parts.append(jnp.maximum(-C, 0) if c.unilateral else jnp.abs(C))
     return jnp.concatenate(parts, -1)
 
@@ -346,8 +347,11 @@ def _diagnosis(model: Model, traj: Trajectory, state0: Optional[State], energy: 
     the energy gain out of `bad` (`jc.fit` of a driven experiment: the drive's work is no divergence)."""
     t = model.topology
     x, v = traj.x, traj.v
-    viol = (nan_max(jnp.where(_hard(model, x.dtype), _violation(model, x), 0), axis=-1) if t.m
-            else jnp.zeros(x.shape[:1], x.dtype))
+    if t.m:
+        rows = _violation(model, x)         # NaN for a row whose C is not finite, compliant or not: flagged
+        viol = nan_max(jnp.where(_hard(model, x.dtype) | jnp.isnan(rows), rows, 0), axis=-1)
+    else:
+        viol = jnp.zeros(x.shape[:1], x.dtype)
     e = _energy(model, x, v)
     x0, v0 = (x[0], v[0]) if state0 is None else (state0.x, state0.v)
     e0 = _energy(model, x0, v0)

@@ -134,7 +134,13 @@ def _check_sets(owner, model, prefix) -> None:
     if not isinstance(cons, tuple) or len(cons) != len(t.sets) or not all(isinstance(c, Constraint) for c in cons):
         raise ValueError(f"{owner}: `{prefix}constraints` must be the {len(t.sets)} jc.Constraint sets the model was "
                          f"built with, got {type(cons).__name__} of {len(cons) if isinstance(cons, tuple) else '?'}")
-    for c, info in zip(cons, t.sets):
+    for b, (c, info) in enumerate(zip(cons, t.sets)):
+        try:
+            check_values(owner, f"{prefix}constraints[{b}].compliance", c.compliance, nonneg=True)
+            for key, value in c.params.items():
+                check_values(owner, f"{prefix}constraints[{b}].params[{key!r}]", value)
+        except ValueError as e:
+            raise ValueError(f"{e} (constraint set {info.name!r})") from None
         if c.m != info.m or c.arity != info.k or c.unilateral != info.unilateral or not np.array_equal(
                 c.particles.array, info.particles):
             raise ValueError(f"{owner}: `{prefix}constraints` set {info.name!r} differs from the one the model was "
@@ -697,8 +703,23 @@ def _constraint_sets(constraints, x, fixed, dtype) -> list:
             _check_grad(c, dim, dtype, one)
         cast = {k: jnp.asarray(v).astype(dtype) if jnp.issubdtype(jnp.result_type(v), jnp.floating) else v
                 for k, v in c.params.items()}
+        _check_finite_rows(c, name, x, cast)
         out.append(c.replace(params=cast, compliance=jnp.asarray(c.compliance).astype(dtype), name=name))
     return out
+
+
+def _check_finite_rows(c, name, x, params) -> None:
+    """Refuse a set with a row whose C is not finite at the positions it is built at (where those and its
+    params are known now): such a row would be inactive from the first step, silently."""
+    if concrete(x) is None or any(concrete(v) is None for v in params.values()):
+        return
+    C = np.asarray(jax.vmap(lambda idx, p: c.fn(x[idx], p))(jnp.asarray(c.particles.array), params))
+    bad = ~np.isfinite(C)
+    if bad.any():
+        r = int(np.argmax(bad))
+        raise ValueError(f"build: constraint set {name!r}: `fn` is {C[r]} at `positions` for `particles[{r}]` = "
+                         f"{c.particles.array[r].tolist()} ({int(bad.sum())} of {c.m} rows not finite); a row whose "
+                         "C is not finite is inactive, so this constraint would never act")
 
 
 def _unique_names(names) -> list:
