@@ -26,6 +26,7 @@ from jaxcon.core.contact_rows import (
     ObstacleColour,
     Rows,
     direction,
+    each_obstacle,
     dot as _dot,
     is_in_solve,
     length as _length,
@@ -153,7 +154,7 @@ def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impuls
     if obs is not None and obs.sel is not None:
         v, (on, ot) = _selected_obstacles(colour, w, v, obs, soft[0], on, ot)
     elif obs is not None:
-        v, (on, ot) = L.each_colour(ObstacleBlock(cs.ct.n_obstacles), colour(w), v, ((obs, soft[0]), (on, ot)))
+        v, (on, ot) = L.each_colour(ObstacleBlock(cs.ct), colour(w), v, ((obs, soft[0]), (on, ot)))
     pn, pt = imp.pair_n, imp.pair_t
     if pairs is not None:
         dim, shape = v.shape[0], v.shape
@@ -328,8 +329,8 @@ def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, 
         on, ot = project(_obstacle_frame(obs), on, jnp.moveaxis(ot, 1, 0))
         ot = jnp.moveaxis(ot, 0, 1)          # back to [Q, dim, *view]
         P = obs.n * on[:, None] + ot
-        for q in range(P.shape[0]):       # obstacle by obstacle, written out (see `carry_slots`)
-            v = v + w * P[q]
+        v = each_obstacle(ct, lambda v, q, sphere, Pq: (v + w * Pq, None), v, P)[0]   # obstacle by obstacle (see
+        # `carry_slots`), written out up to `UNROLL_OBSTACLES`
     pn, pt = prev.pair_n, prev.pair_t
     partners = pair_partners(pairs)
     if partners is not None:
@@ -431,10 +432,10 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
     k = L.safe_reciprocal(w[0])
 
     def obstacles(x):
-        for q in range(ct.n_obstacles):          # planes, then spheres
-            n, C = obstacle_gap(cs, q, x)
-            x = x + n * (jnp.maximum(-C - slop * r, 0) * (k > 0))
-        return x
+        def one(x, q, sphere, _):                # planes, then spheres
+            n, C = obstacle_gap(cs, q, x, sphere=sphere)
+            return x + n * (jnp.maximum(-C - slop * r, 0) * (k > 0)), None
+        return each_obstacle(ct, one, x)[0]
 
     def pairs_pass(x):           # round by round, or slot by slot (mass splitting over a slot's overlaps)
         wf, rf = w.reshape(-1), cs.radius_flat
@@ -536,11 +537,11 @@ def position_pass(cs: ContactSystem, w, x, p, imp: Impulses, partners=None):
         k = L.safe_reciprocal(w[0])
 
         def obstacle(p, c, lam):
-            n, C = obstacle_gap(cs, c.q, p, x)
+            n, C = obstacle_gap(cs, c.q, p, x, sphere=c.sphere)
             P, ln, lt = _position_row(p - x, n, C, k, mu, *lam)
             return p + w * P, (ln, lt)
 
-        p, (on, ot) = L.each_colour(ObstacleBlock(ct.n_obstacles), obstacle, p, (on, ot))
+        p, (on, ot) = L.each_colour(ObstacleBlock(ct), obstacle, p, (on, ot))
     pn, pt = imp.pair_n, imp.pair_t
     if ct.n_pairs or ct.has_grid:
         dim, shape = p.shape[0], p.shape
