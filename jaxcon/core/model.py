@@ -95,8 +95,8 @@ class Model:
         dtype = jnp.result_type(self.inv_mass)
         c = self.contact
         contacts = "" if c is None else ", contacts: " + ", ".join(
-            plural(k, word) for k, word in ((c.n_planes, "plane"), (c.n_spheres, "sphere"), (c.n_pairs, "pair"))
-            if k)
+            [plural(k, word) for k, word in ((c.n_planes, "plane"), (c.n_spheres, "sphere"), (c.n_pairs, "pair"))
+             if k] + ([f"a neighbour grid of {c.grid_k} per particle"] if c.grid_k else []))
         return (f"Model({plural(t.n, 'particle')}{fixed}, {plural(t.m, 'constraint')}"
                 f"{f' ({kinds})' if kinds else ''}, {plural(t.n_colours, 'colour')}{contacts}, dim={t.dim}, "
                 f"dtype={dtype})")
@@ -410,8 +410,8 @@ def build(
         piece within contact distance here, which needs concrete `positions` and `radius`: self-collision), "grid"
         (the same pairs, always on the neighbour grid; True uses it above 256 particles), or a list of (i, j)
         pairs, exactly those (docs/contacts.md). Every contact solver steps a grid model, with substeps.
-      max_neighbours: the grid's capacity, partners kept per particle (static int >= 1; default 8 in 2-D,
-        16 in 3-D). Candidates beyond it are counted in `Trajectory.contact_overflow` and `jc.diagnose`.
+      max_neighbours: the grid's capacity, partners kept per particle (static int >= 1, capped at the number of
+        particles; default 8 in 2-D, 16 in 3-D). Candidates beyond it are counted in `Trajectory.contact_overflow` and `jc.diagnose`.
       planes: [(normal, offset), ...]: particles stay in normal . x >= offset + radius (normal normalised).
       spheres: [(centre, R), ...]: static spheres of radius R > 0 every particle stays outside of.
       friction, restitution: Coulomb mu >= 0 and e in [0, 1] of every contact (default 0 and 0).
@@ -496,7 +496,9 @@ def _collisions(collide, max_neighbours, n, dim, rods, sets, x, radius, fixed):
     pairs that never collide [m, 2] (`_skipped`))."""
     joined = _skipped(collide, rods, sets, x, radius, n, fixed)
     pairs = contact_pairs(collide, n, joined)
-    grid_k = check_max_neighbours(max_neighbours, collide, dim) if uses_grid(collide, n) else 0
+    # a particle has at most n - 1 partners: a larger capacity only costs memory and compile time (K = 1e4 with 20
+    # particles took 70 s to compile), so it is capped at n
+    grid_k = min(check_max_neighbours(max_neighbours, collide, dim), n) if uses_grid(collide, n) else 0
     if max_neighbours is not None and not grid_k:
         check_max_neighbours(max_neighbours, collide, dim)
     return pairs, grid_k, joined

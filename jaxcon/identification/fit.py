@@ -238,9 +238,14 @@ def _schedule(horizon, ob: _Obs, n_params: int) -> tuple:
             frames *= 2
         return tuple(out) + (T,)
     try:
-        hs = tuple(int(h) for h in horizon)
+        raw = np.asarray(horizon)
+        if raw.ndim != 1 or raw.dtype.kind not in "iuf":
+            raise TypeError
     except (TypeError, ValueError):
         raise ValueError(f"fit: `horizon` must be 'grow', 'full' or a list of step counts, got {horizon!r}") from None
+    if raw.dtype.kind == "f" and not np.all(np.isfinite(raw) & (raw == np.round(raw))):
+        raise ValueError(f"fit: `horizon` step counts must be whole numbers, got {horizon!r}")
+    hs = tuple(int(h) for h in raw)
     if not hs or any(h < 1 for h in hs) or any(b <= a for a, b in zip(hs, hs[1:])) or hs[-1] > T:
         raise ValueError(f"fit: `horizon` step counts must increase from >= 1 to at most the record's {T} steps, "
                          f"got {hs}")
