@@ -202,9 +202,14 @@ def test_many_planes_give_the_same_motion_as_written_out(monkeypatch):
     m, s = _box(12, n=8)
     s = s.replace(v=jnp.asarray(np.random.default_rng(2).standard_normal((8, 2))))
     solvers = (jc.PGS(4), jc.XPBD(substeps=2), jc.Penalty(1e4, substeps=4))
+
+    def size():
+        return _equations(jax.make_jaxpr(lambda m, s: jc.rollout(m, s, solvers[0], DT, 2)[0].x)(m, s).jaxpr)
     scanned = [np.asarray(jc.rollout(m, s, solver, DT, 30)[0].x) for solver in solvers]
+    small = size()
     jax.clear_caches()
     monkeypatch.setattr(contact_rows, "UNROLL_OBSTACLES", 100)
+    assert size() > small + 500                    # another program: the loop written out
     for solver, a in zip(solvers, scanned):
         written = np.asarray(jc.rollout(m, s, solver, DT, 30)[0].x)
         np.testing.assert_allclose(a, written, atol=1e-9)

@@ -152,7 +152,7 @@ def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impuls
 
     on, ot = imp.obs_n, imp.obs_t
     if obs is not None and obs.sel is not None:
-        v, (on, ot) = _selected_obstacles(colour, w, v, obs, soft[0], on, ot)
+        v, (on, ot) = _selected_obstacles(cs.ct, colour, w, v, obs, soft[0], on, ot)
     elif obs is not None:
         v, (on, ot) = L.each_colour(ObstacleBlock(cs.ct), colour(w), v, ((obs, soft[0]), (on, ot)))
     pn, pt = imp.pair_n, imp.pair_t
@@ -165,7 +165,7 @@ def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impuls
     return v, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
 
-def _selected_obstacles(colour, w, v, obs: Rows, soft, on, ot):
+def _selected_obstacles(ct, colour, w, v, obs: Rows, soft, on, ot):
     """The obstacles' part of `sweep` where `obs.sel` picks the rows within reach (`contact_rows.select_obstacles`):
     obstacle by obstacle, if every row left out would not change (no impulse, and an update that asks for none:
     k (target - vn) <= 0), only the picked rows are solved, gathered into `idx`'s order and written back; else
@@ -179,9 +179,9 @@ def _selected_obstacles(colour, w, v, obs: Rows, soft, on, ot):
     def flat(a):
         return a.reshape(a.shape[: a.ndim - nview] + (-1,))
 
-    ons, ots = [], []
     planes = obs.sel.planes          # inside a solve that split the impulses per obstacle (`solve_phases`)
-    for q in range(obs.gap.shape[0]):
+
+    def one(vf, q):
         f = jax.tree.map(lambda a: flat(a[q]), obs._replace(sel=None)) if planes is None else \
             phase_target(planes[q][0], obs.sel.late)
         s = None if soft is None else jax.tree.map(lambda a: flat(a[q]), soft)
@@ -191,7 +191,7 @@ def _selected_obstacles(colour, w, v, obs: Rows, soft, on, ot):
         # the row update must change this test too
         still = (ln == 0) & jnp.all(lt == 0, 0) & ((f.target - _dot(vf, f.n)) * f.k <= 0)
 
-        def picked(args, f=f, s=s, idx=idx, q=q):
+        def picked(args):
             vf, ln, lt = args
             live = idx < n
 
@@ -211,18 +211,23 @@ def _selected_obstacles(colour, w, v, obs: Rows, soft, on, ot):
                 return a.at[..., idx].set(b, mode="drop")
             return put(vf, vs), put(ln, lns), put(lt, lts)
 
-        def every(args, f=f, s=s, q=q):
+        def every(args):
             vf, ln, lt = args
             vf, (ln, lt) = colour(wf)(vf, ObstacleColour(q), ((f, s), (ln, lt)))
             return vf, ln, lt
 
         vf, ln, lt = lax.cond(jnp.all(inside | still), picked, every, (vf, ln, lt))
-        ons.append(ln)
-        ots.append(lt)
-    if planes is not None:
+        return vf, (ln, lt)
+
+    if planes is not None:           # split per obstacle: at most UNROLL_OBSTACLES of them (`solve_phases`)
+        ons, ots = [], []
+        for q in range(obs.gap.shape[0]):
+            vf, (ln, lt) = one(vf, q)
+            ons.append(ln)
+            ots.append(lt)
         return vf.reshape(vshape), (tuple(ons), tuple(ots))
-    return vf.reshape(vshape), (jnp.stack([a.reshape(on.shape[1:]) for a in ons]),
-                                jnp.stack([a.reshape(ot.shape[1:]) for a in ots]))
+    vf, (ons, ots) = each_obstacle(ct, lambda vf, q, sphere, _: one(vf, q), vf)
+    return vf.reshape(vshape), (ons.reshape(on.shape), ots.reshape(ot.shape))
 
 
 def _obstacle_frame(obs: Rows):
