@@ -75,7 +75,7 @@ def test_set_names_are_unique_and_a_model_with_two_of_a_name_is_refused():
     m, s = jc.build(x, 1.0, fixed=[0], constraints=cs)
     names = [c.name for c in m.constraints]
     assert names == ["d", "d_2", "d_1"]
-    with pytest.raises(ValueError, match="two sets named 'd'"):
+    with pytest.raises(ValueError, match="set 'd_2' is named 'd'"):
         m.replace(constraints=(m.constraints[0], m.constraints[1].replace(name="d"), m.constraints[2]))
     from jaxcon.identification.params import _constraint_of
     twin = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(m), jax.tree_util.tree_leaves(m))

@@ -145,15 +145,13 @@ def _check_sets(owner, model, prefix) -> None:
                 c.particles.array, info.particles):
             raise ValueError(f"{owner}: `{prefix}constraints` set {info.name!r} differs from the one the model was "
                              "built with (particles or kind); build the model again to change them")
+        if c.name != info.name:
+            raise ValueError(f"{owner}: `{prefix}constraints` set {info.name!r} is named {c.name!r}; a model's sets keep "
+                             "the names they were built with (repr, errors and `jc.fit` use them)")
         if info.fn is not None and c.fn is not info.fn:
             raise ValueError(f"{owner}: `{prefix}constraints` set {info.name!r} has another `fn` "
                              f"({getattr(c.fn, '__name__', c.fn)!r}, built with "
                              f"{getattr(info.fn, '__name__', info.fn)!r}); build the model again to change a kind")
-    names = [c.name for c in cons]
-    if len(set(names)) != len(names):
-        dup = next(n for n in names if names.count(n) > 1)
-        raise ValueError(f"{owner}: `{prefix}constraints` has two sets named {dup!r}; set names must be unique "
-                         "(`jc.fit` names parameters by them)")
 
 
 def _check_contact_leaves(owner, model, prefix) -> None:
