@@ -238,3 +238,20 @@ def test_energy_gain_is_finite_at_a_zero_energy_scale():
     m0, s0 = jc.build(np.array([[0.0, 0.0], [1.0, 0.0]]), 1.0, fixed=[0], constraints=spring, gravity=np.zeros(2))
     _, tr0 = jc.rollout(m0, s0, jc.XPBD(), DT, 4)
     assert float(np.abs(jc.diagnose(m0, tr0, s0).energy_gain).max()) == 0.0
+
+
+def test_bench_contact_grid_honours_out_and_small(tmp_path, monkeypatch):
+    """`bench --contact-grid` ignored `--out` and `--small`. The timing is replaced by a stub here (what is
+    checked is the wiring: the sizes and steps run, and the JSON written)."""
+    import json
+
+    from jaxcon.bench import cli, contact_grid
+    calls = []
+    monkeypatch.setattr(contact_grid, "per_step", lambda n, collide, steps: calls.append((n, collide, steps)) or
+                        (1.5, 2e-3))
+    out = tmp_path / "grid.json"
+    assert cli.main(["bench", "--contact-grid", "--small", "--out", str(out)]) == 0
+    assert sorted({c[0] for c in calls}) == list(contact_grid.SMALL_SIZES)
+    assert {c[2] for c in calls} == {contact_grid.SMALL_STEPS}
+    rows = json.loads(out.read_text())["contact_grid"]
+    assert [r["n"] for r in rows] == list(contact_grid.SMALL_SIZES) and rows[0]["grid_ms_per_step"] == 2.0
