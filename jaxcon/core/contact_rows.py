@@ -185,12 +185,13 @@ UNILATERAL = Unilateral()
 
 
 class ObstacleColour(Unilateral):
-    """Obstacle q's rows inside a sweep: one per particle, on the [dim, *view] arrays."""
+    """Obstacle q's rows inside a sweep: one per particle, on the [dim, *view] arrays. `q` is an int, or traced
+    inside `each_obstacle`'s scan; `sphere` (static) says whether it is a sphere (else a plane)."""
 
     split = False
 
-    def __init__(self, q: int):
-        self.q = q
+    def __init__(self, q, sphere: Optional[bool] = None):
+        self.q, self.sphere = q, sphere
 
     @staticmethod
     def rel(a):
@@ -299,18 +300,45 @@ def sparse_slots(partners) -> Optional[SparseSlots]:
     return SparseSlots(idx, jnp.sum(live, 1, dtype=jnp.int32))
 
 
-class ObstacleBlock:
-    """Every obstacle's rows, [Q, ...] leaves: obstacle by obstacle (planes, then spheres)."""
+#: Up to this many obstacles, a loop over them (`each_obstacle`) is written out; above, it is a `lax.scan` over the
+#: planes and one over the spheres, so that the program's size, and XLA's compile time, do not grow with their
+#: number (docs/contacts.md: a 100-plane box).
+UNROLL_OBSTACLES = 8
 
-    def __init__(self, count: int):
-        self.count = count
 
-    def each(self, fn, carry, rows):
+def each_obstacle(ct: ContactTopology, fn, carry, rows=None):
+    """``carry, out = fn(carry, q, sphere, row)`` for every obstacle q, in order (planes, then spheres): `row` is
+    `rows`' (a pytree of [Q, ...] leaves, or None) entry q, `sphere` (static) whether q is a sphere, and `q` an
+    int, or a traced index above UNROLL_OBSTACLES obstacles. The outs are stacked, [Q, ...]."""
+    Q, P = ct.n_obstacles, ct.n_planes
+    if Q <= UNROLL_OBSTACLES:
         outs = []
-        for q in range(self.count):
-            carry, out = fn(carry, ObstacleColour(q), jax.tree.map(lambda a: a[q], rows))
+        for q in range(Q):
+            carry, out = fn(carry, q, q >= P, jax.tree.map(lambda a: a[q], rows))
             outs.append(out)
         return carry, jax.tree.map(lambda *a: jnp.stack(a), *outs)
+    outs = []
+    for sphere, lo, count in ((False, 0, P), (True, P, ct.n_spheres)):
+        if not count:
+            continue
+
+        def body(c, xs, lo=lo, sphere=sphere):
+            k, row = xs
+            return fn(c, lo + k, sphere, row)
+        carry, out = lax.scan(body, carry, (jnp.arange(count, dtype=jnp.int32),
+                                            jax.tree.map(lambda a, lo=lo, count=count: a[lo:lo + count], rows)))
+        outs.append(out)
+    return carry, jax.tree.map(lambda *a: jnp.concatenate(a), *outs)
+
+
+class ObstacleBlock:
+    """Every obstacle's rows, [Q, ...] leaves: obstacle by obstacle (planes, then spheres; `each_obstacle`)."""
+
+    def __init__(self, ct: ContactTopology):
+        self.ct = ct
+
+    def each(self, fn, carry, rows):
+        return each_obstacle(self.ct, lambda c, q, sphere, row: fn(c, ObstacleColour(q, sphere), row), carry, rows)
 
 
 class RoundBlock:
@@ -621,24 +649,25 @@ def magnitude(a):
 def _obstacle_geometry(cs: ContactSystem, x, v, h):
     """(n [Q, dim, *view], C, C_n, hit, impact, toi, tol [Q, *view]) of every particle against every plane,
     then every sphere, for particles moving at `v` over the step; tol is `_gap`'s rounding tolerance."""
-    ct, dim, nview = cs.ct, x.shape[0], x.ndim - 1
-    out = []
+    dim, nview = x.shape[0], x.ndim - 1
     r = cs.radius[0]
     size = magnitude(x) + r
-    for p in range(ct.n_planes):
-        nrm = jnp.broadcast_to(cs.plane_normal[p].reshape((dim,) + (1,) * nview), x.shape)
-        C = dot(nrm, x) - cs.plane_offset[p] - r
-        tol = tolerance(size + jnp.abs(cs.plane_offset[p]))
-        vn = dot(nrm, v)
-        Ci = _gap(C, tol)                  # as in `_swept`: the impact is when the gap reaches -tol
-        impact = (Ci > 0) & (Ci + h * vn < 0)
-        out.append((nrm, C, C, impact, impact, jnp.where(impact, Ci / jnp.where(impact, -vn, 1), 0), tol))
-    for s in range(ct.n_spheres):
+
+    def one(_, q, sphere, row):
+        if not sphere:
+            nrm = jnp.broadcast_to(cs.plane_normal[q].reshape((dim,) + (1,) * nview), x.shape)
+            C = dot(nrm, x) - cs.plane_offset[q] - r
+            tol = tolerance(size + jnp.abs(cs.plane_offset[q]))
+            vn = dot(nrm, v)
+            Ci = _gap(C, tol)                  # as in `_swept`: the impact is when the gap reaches -tol
+            impact = (Ci > 0) & (Ci + h * vn < 0)
+            return None, (nrm, C, C, impact, impact, jnp.where(impact, Ci / jnp.where(impact, -vn, 1), 0), tol)
+        s = q - cs.ct.n_planes
         c = cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
         R = cs.sphere_radius[s] + r
         tol = tolerance(size + magnitude(c) + R)
-        out.append(_swept(x - c, v, R, h, tol) + (tol,))
-    return tuple(jnp.stack(a) for a in zip(*out))
+        return None, _swept(x - c, v, R, h, tol) + (tol,)
+    return each_obstacle(cs.ct, one, None)[1]
 
 
 def _first_impacts(ct, obs, pairs, n_particles, index=None):
@@ -773,13 +802,13 @@ def pair_total(ct, w, P, sign_i, index=None, partners=None):  # noqa: D401
 
 
 # ---- rows at position level (XPBD, Penalty) and of XPBD's velocity pass ---------------------------------
-def obstacle_gap(cs: ContactSystem, q: int, p, x=None):
+def obstacle_gap(cs: ContactSystem, q, p, x=None, sphere: Optional[bool] = None):
     """(unit normal [dim, *view], gap [*view]) of every particle at `p` against obstacle q (planes first).
     With the substep's start positions `x`, a particle that started inside a sphere keeps the normal it had
-    there (`overlap_normal`)."""
+    there (`overlap_normal`). A traced q (`each_obstacle`) comes with `sphere`, whether it is a sphere."""
     dim, nview = p.shape[0], p.ndim - 1
     r = cs.radius[0]
-    if q < cs.ct.n_planes:
+    if not (q >= cs.ct.n_planes if sphere is None else sphere):
         nrm = jnp.broadcast_to(cs.plane_normal[q].reshape((dim,) + (1,) * nview), p.shape)
         return nrm, dot(nrm, p) - cs.plane_offset[q] - r
     s = q - cs.ct.n_planes
@@ -790,10 +819,10 @@ def obstacle_gap(cs: ContactSystem, q: int, p, x=None):
     return nrm, dist - cs.sphere_radius[s] - r
 
 
-def obstacle_size(cs: ContactSystem, q: int):
+def obstacle_size(cs: ContactSystem, q, sphere: Optional[bool] = None):
     """A size of obstacle q's parameters for a rounding tolerance (`tolerance`) at position level: the sum of
-    the absolute components of a plane's normal, or of a sphere's centre."""
-    if q < cs.ct.n_planes:
+    the absolute components of a plane's normal, or of a sphere's centre (q and `sphere` as for `obstacle_gap`)."""
+    if not (q >= cs.ct.n_planes if sphere is None else sphere):
         return jnp.sum(jnp.abs(cs.plane_normal[q]))
     return jnp.sum(jnp.abs(cs.sphere_centre[q - cs.ct.n_planes]))
 
@@ -812,8 +841,7 @@ def velocity_rows(cs: ContactSystem, w, p, v_before, imp: Impulses, partners=Non
     ct, dim = cs.ct, p.shape[0]
     obs = pairs = None
     if ct.n_obstacles:
-        ns, Cs = zip(*(obstacle_gap(cs, q, p) for q in range(ct.n_obstacles)))
-        n, C = jnp.stack(ns), jnp.stack(Cs)
+        n, C = each_obstacle(ct, lambda c, q, sphere, row: (c, obstacle_gap(cs, q, p, sphere=sphere)), None)[1]
         winv = jnp.broadcast_to(w[0], C.shape)
         k = L.safe_reciprocal(winv) * (imp.obs_n > 0).astype(C.dtype)
         obs = Rows(n, _bounce_target(cs, dot(jnp.moveaxis(n, 1, 0), v_before[:, None])), k, winv, jnp.zeros_like(C), C)

@@ -29,7 +29,7 @@ position -> user particle) and ``pos`` (its inverse) convert.
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 
@@ -222,6 +222,7 @@ class SetInfo:
     particles: np.ndarray
     unilateral: bool
     name: str
+    fn: Any = None      # the set's `fn`: `Model.replace` refuses a set of another kind
 
     @property
     def m(self) -> int:

@@ -531,7 +531,8 @@ def solve_phases(sys, v_free, obs, pairs, iterations: int, carry, body, slot_maj
         one_iteration = body(None, None)
         return lax.fori_loop(0, iterations, lambda _, c: one_iteration(c), carry, unroll=sys.topology.unroll)
     major = slot_major and contact_rows.pair_partners(pairs) is not None
-    split = slot_major and obs is not None and obs.sel is not None
+    split = (slot_major and obs is not None and obs.sel is not None
+             and obs.gap.shape[0] <= contact_rows.UNROLL_OBSTACLES)     # more: scanned, not split
     if major or split:
         view = obs.gap.shape[1:] if split else None
 

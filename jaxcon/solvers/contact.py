@@ -26,6 +26,7 @@ from jaxcon.core.contact_rows import (
     ObstacleColour,
     Rows,
     direction,
+    each_obstacle,
     dot as _dot,
     is_in_solve,
     length as _length,
@@ -151,9 +152,9 @@ def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impuls
 
     on, ot = imp.obs_n, imp.obs_t
     if obs is not None and obs.sel is not None:
-        v, (on, ot) = _selected_obstacles(colour, w, v, obs, soft[0], on, ot)
+        v, (on, ot) = _selected_obstacles(cs.ct, colour, w, v, obs, soft[0], on, ot)
     elif obs is not None:
-        v, (on, ot) = L.each_colour(ObstacleBlock(cs.ct.n_obstacles), colour(w), v, ((obs, soft[0]), (on, ot)))
+        v, (on, ot) = L.each_colour(ObstacleBlock(cs.ct), colour(w), v, ((obs, soft[0]), (on, ot)))
     pn, pt = imp.pair_n, imp.pair_t
     if pairs is not None:
         dim, shape = v.shape[0], v.shape
@@ -164,7 +165,7 @@ def sweep(cs: Optional[ContactSystem], w, v, obs: Rows, pairs: Rows, imp: Impuls
     return v, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
 
-def _selected_obstacles(colour, w, v, obs: Rows, soft, on, ot):
+def _selected_obstacles(ct, colour, w, v, obs: Rows, soft, on, ot):
     """The obstacles' part of `sweep` where `obs.sel` picks the rows within reach (`contact_rows.select_obstacles`):
     obstacle by obstacle, if every row left out would not change (no impulse, and an update that asks for none:
     k (target - vn) <= 0), only the picked rows are solved, gathered into `idx`'s order and written back; else
@@ -178,9 +179,9 @@ def _selected_obstacles(colour, w, v, obs: Rows, soft, on, ot):
     def flat(a):
         return a.reshape(a.shape[: a.ndim - nview] + (-1,))
 
-    ons, ots = [], []
     planes = obs.sel.planes          # inside a solve that split the impulses per obstacle (`solve_phases`)
-    for q in range(obs.gap.shape[0]):
+
+    def one(vf, q):
         f = jax.tree.map(lambda a: flat(a[q]), obs._replace(sel=None)) if planes is None else \
             phase_target(planes[q][0], obs.sel.late)
         s = None if soft is None else jax.tree.map(lambda a: flat(a[q]), soft)
@@ -190,7 +191,7 @@ def _selected_obstacles(colour, w, v, obs: Rows, soft, on, ot):
         # the row update must change this test too
         still = (ln == 0) & jnp.all(lt == 0, 0) & ((f.target - _dot(vf, f.n)) * f.k <= 0)
 
-        def picked(args, f=f, s=s, idx=idx, q=q):
+        def picked(args):
             vf, ln, lt = args
             live = idx < n
 
@@ -210,18 +211,23 @@ def _selected_obstacles(colour, w, v, obs: Rows, soft, on, ot):
                 return a.at[..., idx].set(b, mode="drop")
             return put(vf, vs), put(ln, lns), put(lt, lts)
 
-        def every(args, f=f, s=s, q=q):
+        def every(args):
             vf, ln, lt = args
             vf, (ln, lt) = colour(wf)(vf, ObstacleColour(q), ((f, s), (ln, lt)))
             return vf, ln, lt
 
         vf, ln, lt = lax.cond(jnp.all(inside | still), picked, every, (vf, ln, lt))
-        ons.append(ln)
-        ots.append(lt)
-    if planes is not None:
+        return vf, (ln, lt)
+
+    if planes is not None:           # split per obstacle: at most UNROLL_OBSTACLES of them (`solve_phases`)
+        ons, ots = [], []
+        for q in range(obs.gap.shape[0]):
+            vf, (ln, lt) = one(vf, q)
+            ons.append(ln)
+            ots.append(lt)
         return vf.reshape(vshape), (tuple(ons), tuple(ots))
-    return vf.reshape(vshape), (jnp.stack([a.reshape(on.shape[1:]) for a in ons]),
-                                jnp.stack([a.reshape(ot.shape[1:]) for a in ots]))
+    vf, (ons, ots) = each_obstacle(ct, lambda vf, q, sphere, _: one(vf, q), vf)
+    return vf.reshape(vshape), (ons.reshape(on.shape), ots.reshape(ot.shape))
 
 
 def _obstacle_frame(obs: Rows):
@@ -328,8 +334,8 @@ def warm_start(cs: ContactSystem, w, v, obs: Rows, pairs: Rows, prev: Impulses, 
         on, ot = project(_obstacle_frame(obs), on, jnp.moveaxis(ot, 1, 0))
         ot = jnp.moveaxis(ot, 0, 1)          # back to [Q, dim, *view]
         P = obs.n * on[:, None] + ot
-        for q in range(P.shape[0]):       # obstacle by obstacle, written out (see `carry_slots`)
-            v = v + w * P[q]
+        v = each_obstacle(ct, lambda v, q, sphere, Pq: (v + w * Pq, None), v, P)[0]   # obstacle by obstacle (see
+        # `carry_slots`), written out up to `UNROLL_OBSTACLES`
     pn, pt = prev.pair_n, prev.pair_t
     partners = pair_partners(pairs)
     if partners is not None:
@@ -431,10 +437,10 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
     k = L.safe_reciprocal(w[0])
 
     def obstacles(x):
-        for q in range(ct.n_obstacles):          # planes, then spheres
-            n, C = obstacle_gap(cs, q, x)
-            x = x + n * (jnp.maximum(-C - slop * r, 0) * (k > 0))
-        return x
+        def one(x, q, sphere, _):                # planes, then spheres
+            n, C = obstacle_gap(cs, q, x, sphere=sphere)
+            return x + n * (jnp.maximum(-C - slop * r, 0) * (k > 0)), None
+        return each_obstacle(ct, one, x)[0]
 
     def pairs_pass(x):           # round by round, or slot by slot (mass splitting over a slot's overlaps)
         wf, rf = w.reshape(-1), cs.radius_flat
@@ -536,11 +542,11 @@ def position_pass(cs: ContactSystem, w, x, p, imp: Impulses, partners=None):
         k = L.safe_reciprocal(w[0])
 
         def obstacle(p, c, lam):
-            n, C = obstacle_gap(cs, c.q, p, x)
+            n, C = obstacle_gap(cs, c.q, p, x, sphere=c.sphere)
             P, ln, lt = _position_row(p - x, n, C, k, mu, *lam)
             return p + w * P, (ln, lt)
 
-        p, (on, ot) = L.each_colour(ObstacleBlock(ct.n_obstacles), obstacle, p, (on, ot))
+        p, (on, ot) = L.each_colour(ObstacleBlock(ct), obstacle, p, (on, ot))
     pn, pt = imp.pair_n, imp.pair_t
     if ct.n_pairs or ct.has_grid:
         dim, shape = p.shape[0], p.shape

@@ -353,10 +353,11 @@ def _start_overlaps(cs, w, x, v, prev, h, k, c, partners=None):
     if ct.n_obstacles:
         m = L.safe_reciprocal(w[0])
         size = jnp.sum(jnp.abs(x), 0) + r
-        for q in range(ct.n_obstacles):
-            n, C = contact_rows.obstacle_gap(cs, q, x)
-            tol = contact_rows.tolerance(size + contact_rows.obstacle_size(cs, q))
-            x = x + n * _excess(C, jnp.sum(n * v, 0), m, prev.obs_n[q], h, k, c, two_zeta, tol)
+        def one(x, q, sphere, prev_n):
+            n, C = contact_rows.obstacle_gap(cs, q, x, sphere=sphere)
+            tol = contact_rows.tolerance(size + contact_rows.obstacle_size(cs, q, sphere))
+            return x + n * _excess(C, jnp.sum(n * v, 0), m, prev_n, h, k, c, two_zeta, tol), None
+        x = contact_rows.each_obstacle(ct, one, x, prev.obs_n)[0]
     if ct.n_pairs or ct.has_grid:
         xf, vf, wf, rf = x.reshape(dim, -1), v.reshape(dim, -1), w.reshape(-1), cs.radius_flat
         ia, ja, valid, index = contact_rows.pair_slots(ct, xf.shape[1], partners)
@@ -379,13 +380,11 @@ def _contact_impulses(topo, cs, w, x, v0, v, h, k, c, slip, partners=None):
     dv = jnp.zeros_like(v)
     if ct.n_obstacles:
         m = L.safe_reciprocal(w[0])
-        rows = []
-        for q in range(ct.n_obstacles):
-            n, C = contact_rows.obstacle_gap(cs, q, x)
+        def one(dv, q, sphere, _):
+            n, C = contact_rows.obstacle_gap(cs, q, x, sphere=sphere)
             p_n, p_t = _penalty_row(v0, v, n, C, m, k, c, two_zeta, mu, slip, h)
-            dv = dv + w * (n * p_n + p_t)
-            rows.append((p_n, p_t))
-        on, ot = (jnp.stack(a) for a in zip(*rows))
+            return dv + w * (n * p_n + p_t), (p_n, p_t)
+        dv, (on, ot) = contact_rows.each_obstacle(ct, one, dv)
     if ct.n_pairs or ct.has_grid:
         xf, vf, v0f, wf = x.reshape(dim, -1), v.reshape(dim, -1), v0.reshape(dim, -1), w.reshape(-1)
         ia, ja, valid, index = contact_rows.pair_slots(ct, xf.shape[1], partners)
