@@ -196,7 +196,10 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_
         ssys, mu = rows
         f = R.set_frame(topo, blk, sys.cons[blk.generic], ssys, p, sys.w)
         a = jnp.zeros_like(f.C) if set_alpha is None else set_alpha(f.alpha)
-        dmu = (f.C - a * mu) * L.safe_reciprocal(f.s + a) * (f.k > 0).astype(f.C.dtype)
+        if getattr(blk, "hub_slot", None) is not None:      # a set's stars: their rows solved together
+            dmu = L.block_solve(topo, blk, f, f.C - a * mu, a)
+        else:
+            dmu = (f.C - a * mu) * L.safe_reciprocal(f.s + a) * (f.k > 0).astype(f.C.dtype)
         if set_alpha is None:
             dmu = dmu * (f.alpha == 0).astype(dmu.dtype)
         if jacobi_relaxation is not None:
@@ -327,7 +330,11 @@ def shake_sweep(sys: System, fr0: tuple, h, tol=0.0):
         live = (f0.k > 0) & (f.k > 0) & (along > 0) & (f0.alpha == 0)
         ss = f.s * f0.s                  # 0 where a row has no gradient: sqrt's derivative there is infinite
         floor = 0.5 * jnp.sqrt(jnp.where(ss > 0, ss, 1)) * (ss > 0).astype(ss.dtype)
-        new = R.accumulate(blk, mu, jnp.where(live, f.C / jnp.where(live, jnp.maximum(along, floor), 1), 0))
+        if getattr(blk, "hub_slot", None) is not None:      # a set's stars: along J0, J0 M^-1 J0^T solved together
+            step = L.block_solve(topo, blk, f0._replace(k=f0.k * live), jnp.where(live, f.C, 0))
+        else:
+            step = jnp.where(live, f.C / jnp.where(live, jnp.maximum(along, floor), 1), 0)
+        new = R.accumulate(blk, mu, step)
         q = f0.Jw * (new - mu)
         return (L.add_rows(topo, blk, x, q), L.add_rows(topo, blk, v, q / h)), new
 

@@ -124,7 +124,8 @@ class RATTLE(Solver):
                 if blk.has_rope:    # a unilateral row constrains the velocity only where the position stage held it
                     held = (mu > 0) | (f.C >= 0)
                     live = live & (held if blk.all_rope else (held | ~blk.rope.array))
-                step = jnp.where(live, rel * f.k, 0)
+                step = (L.block_solve(topo, blk, f._replace(k=f.k * live), rel) if blk.hub_slot is not None
+                        else jnp.where(live, rel * f.k, 0))
                 new = R.accumulate(blk, lam, step)
                 return R.apply(topo, blk, f, v, new - lam), new
             active = jnp.abs(rel) * h > tol * r
