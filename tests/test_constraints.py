@@ -1,5 +1,5 @@
 """Constraints of any kind (`jc.Constraint`, `jc.constraints`): user-written C(x) with J from autodiff, in every
-solver, against independent references (issue 24): a bead on a wire against SciPy in the wire's coordinate, a
+solver, against independent references: a bead on a wire against SciPy in the wire's coordinate, a
 user-written distance against the built-in rod, a unilateral floor carrying m g, a compliant bending arm at the
 minimum of its potential found by SciPy, a cloth bent at every edge that stays bounded, an area-keeping ring, and
 gradients against central differences.

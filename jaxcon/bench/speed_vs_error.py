@@ -1,5 +1,5 @@
 """`python -m jaxcon bench --speed-vs-error`: every solver swept over iterations, substeps and dt, error against
-independent references versus wall time per simulated second (issue 3).
+independent references versus wall time per simulated second.
 
 Scenes (full mode; `--small` shrinks every one):
   double pendulum, mild (0.5, 0.5 rad) and hard (pi/2, pi/2) start, float64, 1 s: max |x - x_ref| over both bobs
