@@ -196,8 +196,8 @@ def _set_hub(n_spokes, kind, dim=2, dtype=None):
 
 def test_set_stars():
     """A constraint set's hubs become stars as rods' do: rows at a free particle of degree >= STAR_MIN_DEGREE
-    that share only it (a duplicated row stays outside, as a duplicated rod); none below that degree or at a
-    fixed particle."""
+    that share only it (a duplicated row stays outside, as a duplicated rod), at least STAR_MIN_DEGREE of them;
+    none below that degree, at a fixed particle, or among a cloth's bending hinges (which share other particles)."""
     from jaxcon.core.topology import set_stars
     rows = np.array([[0, k] for k in range(1, 11)] + [[1, 0], [11, 10]])
     (hub, ks), = set_stars(rows, 12)
@@ -208,6 +208,9 @@ def test_set_stars():
     assert hub == 0 and list(ks) == list(range(9))                # the last row shares particle 1: outside
     model, _ = _set_hub(12, "fn")
     assert model.topology.set_hubs and "set hub stars" in repr(model.topology)
+    cloth, _ = jc.scenes.cloth(12, 12, bending=1e-2)           # hinges: 12 rows at a particle, sharing others
+    assert max(np.bincount(cloth.topology.sets[0].particles.ravel())) >= STAR_MIN_DEGREE
+    assert not cloth.topology.set_hubs
 
 
 @pytest.mark.parametrize("solver", [jc.PGS(10), jc.XPBD(), jc.Jacobi(20), jc.SoftStep(), jc.RATTLE(10)],

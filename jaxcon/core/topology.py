@@ -103,16 +103,19 @@ def set_stars(particles: np.ndarray, n: int, fixed=None) -> list:
     """The hubs of a constraint set (rows `particles` [m, k]): [(hub, its rows)], the set's stars. As for rods
     (`star_colouring`): free particles in at least `STAR_MIN_DEGREE` rows, most rows first, each take the rows at
     them that no earlier hub took and that share no free particle but the hub with the rows taken before (a row
-    that holds the hub twice stays outside). A star's rows share only the hub, so their J M^-1 J^T is a diagonal
-    plus the hub's rank-dim term and is solved exactly by one dim x dim system (`layout.block_solve`)."""
+    that holds the hub twice stays outside), and are a star where they are at least `STAR_MIN_DEGREE` rows. A
+    star's rows share only the hub, so their J M^-1 J^T is a diagonal plus the hub's rank-dim term and is solved
+    exactly by one dim x dim system (`layout.block_solve`). Rows that share other particles as well (a cloth's
+    bending hinges: up to 12 at a particle, but never 9 that share only it) stay rows of the set's colours."""
     rows = np.asarray(particles, np.int64)
     m = len(rows)
     free = np.ones(n, bool) if fixed is None else ~np.asarray(fixed, bool)
     if m < STAR_MIN_DEGREE:
         return []
-    at = np.zeros(n, np.int64)
-    for r in rows:
-        at[np.unique(r)] += 1
+    srt = np.sort(rows, axis=1)
+    first = np.ones(srt.shape, bool)
+    first[:, 1:] = srt[:, 1:] != srt[:, :-1]
+    at = np.bincount(srt[first], minlength=n)                   # rows at each particle
     hubs = [int(p) for p in np.argsort(-at, kind="stable") if at[p] >= STAR_MIN_DEGREE and free[p]]
     taken = np.zeros(m, bool)
     out = []
@@ -124,7 +127,7 @@ def set_stars(particles: np.ndarray, n: int, fixed=None) -> list:
                 continue
             chosen.append(r)
             used |= others
-        if len(chosen) >= 2:
+        if len(chosen) >= STAR_MIN_DEGREE:
             taken[chosen] = True
             out.append((p, np.asarray(chosen, np.int64)))
     return out
