@@ -526,7 +526,8 @@ def solve_phases(sys, v_free, obs, pairs, iterations: int, carry, body, slot_maj
     """The velocity solve, `iterations` of `body(obs, pairs)`, which returns one iteration carry = (v, ...) ->
     carry. A model without contacts runs them in one loop. With contacts it runs in two phases sharing the
     iterations (at least one each): compression (every target without restitution), then restitution,
-    continued from it; the restitution phase's change is scaled back where it would raise the kinetic energy
+    continued from it, ending with the contacts' restitution stage (`contact.restitution_stage`, where the carry
+    ends with the contact `Impulses`); the restitution phase's change is scaled back where it would raise the kinetic energy
     (contact.restitution_scale). One loop, whose rows switch targets between the phases, so the iteration is
     traced and compiled once. Returns the carry mixed leaf by leaf.
 
@@ -566,6 +567,10 @@ def solve_phases(sys, v_free, obs, pairs, iterations: int, carry, body, slot_maj
         return carry, saved
 
     bounced, compressed = lax.fori_loop(0, total, one, (carry, carry))
+    if isinstance(bounced[-1], Impulses):       # the contacts' restitution stage, shared with every solver
+        v, imp = contact.restitution_stage(sys.contact, sys.w, bounced[0], contact_rows.phase(obs, True),
+                                           contact_rows.phase(pairs, True), bounced[-1])
+        bounced = (v,) + tuple(bounced[1:-1]) + (imp,)
     s = contact.restitution_scale(sys.w, v_free, compressed[0], bounced[0], contact_rows.bouncing(obs, pairs))
 
     def mix(a, b):       # integer leaves (a neighbour grid's partners and overflow) are the same in both phases

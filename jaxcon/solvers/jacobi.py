@@ -7,6 +7,7 @@ from typing import Any
 
 import jax.numpy as jnp
 
+from jaxcon.core import contact_rows
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
 from jaxcon.core.checks import check_bool, check_int, check_scalar
@@ -69,6 +70,9 @@ class Jacobi(Solver):
       stabilization: 'baumgarte' (default) or 'split' (static): split impulses as in `PGS`, the position
         projection by Jacobi sweeps with the rods' relaxation (1 / largest degree by default).
       slop: split impulses' slop, as in `PGS`.
+      contact_slop: the overlap left to the contacts, as `PGS.contact_slop` (default
+        `contact_rows.CONTACT_SLOP`). Without it a pile of discs does not rest: its contacts, left at C = 0 by the
+        position pass, are taken for separated and solved cold in some steps, without friction (docs/contacts.md).
     """
 
     iterations: int = static_field(default=20)
@@ -78,9 +82,11 @@ class Jacobi(Solver):
     substeps: int = static_field(default=1)
     stabilization: str = static_field(default="baumgarte")
     slop: Any = 0.005
+    contact_slop: Any = contact_rows.CONTACT_SLOP
 
     def __post_init__(self):
         check_stabilization("Jacobi", self.stabilization)
+        check_scalar("Jacobi", "contact_slop", self.contact_slop, 0.0, 0.5)
         check_scalar("Jacobi", "slop", self.slop, 0.0, 1.0)
         check_int("Jacobi", "iterations", self.iterations, 1)
         check_int("Jacobi", "substeps", self.substeps, 1)
@@ -129,7 +135,9 @@ class Jacobi(Solver):
             relax = jnp.asarray(1.0 / max_degree(topo), dtype) if cs is None else None
         split = self.stabilization == "split"
         share = jnp.asarray(self.slop, dtype)
-        b = step_begin(sys, x, v, lam_ws, beta, h, share if split else None, self.warm_start, found=found)
+        contact_slop = jnp.asarray(self.contact_slop, dtype)
+        b = step_begin(sys, x, v, lam_ws, beta, h, share if split else None, self.warm_start, found=found,
+                       contact_slop=contact_slop)
         base = None if relax is not None else row_counts(topo, b.fr, sys.w)
         springs = tuple(R.gamma(f, h) for f in b.fr)
 
@@ -149,7 +157,7 @@ class Jacobi(Solver):
         if split and b.fr:
             rod_relax = jnp.asarray(1.0 / max_degree(topo), dtype) if relax is None else relax
             rods_pass = lambda x: split_position_pass(sys, x, self.iterations, b.slop, rod_relax)  # noqa: E731
-        x = step_end(sys, x, v, b.v_free, b.obs, b.pairs, imp, h, rods_pass=rods_pass)
+        x = step_end(sys, x, v, b.v_free, b.obs, b.pairs, imp, h, rods_pass=rods_pass, contact_slop=contact_slop)
         return x, v, with_contacts(sys, lam, imp)
 
 

@@ -173,4 +173,5 @@ class SoftStep(Solver):
                 return v, lam, imp
 
             v, lam, imp = lax.fori_loop(0, self.relax_iterations, relax, (v, lam, imp), unroll=topo.unroll)
+        v, imp = contact.restitution_stage(cs, w, v, obs, pairs, imp)
         return x, v, with_contacts(sys, lam, imp)

@@ -41,17 +41,17 @@ class XPBD(Solver):
     2020): in each iteration, after the colours, every contact with gap C(p) < 0 is projected out at position
     level (rigid, lam_n accumulated >= 0; obstacles for all particles at once, pairs round by round), with
     *static* friction cancelling the substep's relative tangential displacement while |lam_t| <= mu lam_n.
-    After v = (p - x) / h, one velocity pass over the contacts that pushed (lam_n > 0) sets the normal
-    relative velocity to -e times its value at the start of the substep after gravity (e = 0 at or below
-    `restitution_threshold`) and applies *dynamic* friction, the tangential velocity removed by an impulse
-    inside the Coulomb disc of the substep's normal impulse. The model's single `friction` is used for both
+    After v = (p - x) / h, a velocity pass over the contacts that pushed (lam_n > 0) sets the normal
+    relative velocity to the bounce of sequential impacts from the start of the substep after gravity
+    (`contact_rows.chain_bounces`; -e vn for a lone contact, e = 0 at or below `restitution_threshold`) and
+    applies *dynamic* friction, the tangential velocity removed by an impulse inside the Coulomb disc of the
+    substep's normal impulse; the positions follow that friction (`contact.position_velocity_pass`), so that
+    what it holds does not creep. The model's single `friction` is used for both
     static and dynamic friction. The reported contact impulses are lam / h plus the velocity pass's impulses,
     summed over the substeps (N s, contact_n >= 0, |contact_t| <= mu contact_n). There is no time-of-impact
     correction (unlike PGS): an impact is resolved at the end of the substep it falls in, so positions after
     a bounce are off by up to a substep's travel and d(final state)/d(initial state) across a bounce is the
-    slope of that piecewise map, with jumps where the impact moves to another substep. Restitution acts on
-    each contact's own approach speed, so an impulse carried through touching bodies within one substep is
-    inelastic: the 16-ball break (`XPBD(substeps=20)`, dt 1/60) keeps 45% of its kinetic energy, PGS 89%.
+    slope of that piecewise map, with jumps where the impact moves to another substep.
     """
 
     iterations: int = static_field(default=1)
@@ -92,7 +92,7 @@ class XPBD(Solver):
             p, mu, imp = lax.fori_loop(0, self.iterations, sweep, (x + h * v_before, zero, imp), unroll=topo.unroll)
             v = (p - x) / h
             if cs is not None:
-                v, imp = contact.position_velocity_pass(cs, sys.w, p, v_before, v, imp, h, partners)
+                v, imp, p = contact.position_velocity_pass(cs, sys.w, p, v_before, v, imp, h, partners, True)
                 imp = with_found(imp, found)
             return p, v, with_contacts(sys, tuple(m / h for m in mu), imp)
 
