@@ -634,7 +634,7 @@ def chain_bounces(cs: ContactSystem, w, v, obs, pairs, partners=None):
     def one_pass(_, carry):
         vc, el_o, el_p = carry
         if obs is not None:
-            vc, el_o = ObstacleBlock(cs.ct.n_obstacles).each(colour(w), vc, (obs, el_o))
+            vc, el_o = ObstacleBlock(cs.ct).each(colour(w), vc, (obs, el_o))
         if pairs is not None:
             vf, el_p = L.each_colour(pair_block(cs.ct, partners), colour(wf), vc.reshape(dim, -1), (pairs, el_p))
             vc = vf.reshape(shape)
