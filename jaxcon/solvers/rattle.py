@@ -2,12 +2,15 @@
 from __future__ import annotations
 
 import functools
+import math
 import operator
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 from jax import lax
 
+from jaxcon.core import contact_rows
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
@@ -15,7 +18,7 @@ from jaxcon.core.pytree import pytree_dataclass, static_field
 from jaxcon.core.system import Solver
 from jaxcon.core.contact import zero_impulses
 from jaxcon.solvers import contact
-from jaxcon.solvers.common import frames, run_substeps, shake_sweep, with_contacts, with_found
+from jaxcon.solvers.common import apply_impulses, frames, run_substeps, shake_sweep, with_contacts, with_found
 
 # A sweep loop is unrolled when it has at most _UNROLL_ITERATIONS iterations and iterations times the code blocks
 # one sweep emits (one per topology block: a colour each in the unrolled layout; a table, star or constraint set
@@ -71,12 +74,13 @@ class RATTLE(Solver):
       tolerance: residual below which a constraint is no longer updated, >= 0 (a leaf; 0: always update).
     """
 
-    iterations: int = static_field(default=10)
-    tolerance: Any = 1e-12
+    iterations: int = static_field(default=50)
+    tolerance: Any = None
 
     def __post_init__(self):
         check_int("RATTLE", "iterations", self.iterations, 1)
-        check_scalar("RATTLE", "tolerance", self.tolerance, 0.0)
+        if self.tolerance is not None:
+            check_scalar("RATTLE", "tolerance", self.tolerance, 0.0)
 
     supports_contacts = True
 
@@ -88,17 +92,16 @@ class RATTLE(Solver):
         topo, cs = sys.topology, sys.contact
         partners = None if found is None else found[0]
         dtype = x.dtype
-        tol = jnp.asarray(self.tolerance, dtype)
+        tol = jnp.asarray(default_tolerance(dtype) if self.tolerance is None else self.tolerance, dtype)
         tiny = jnp.finfo(dtype).tiny
         fr0 = frames(sys, x)
         zero = tuple(jnp.zeros_like(f.C) for f in fr0)
 
-        v, spring0 = _spring_kick(sys, fr0, v, h / 2)
         v = sys.apply_gravity(v, h / 2)
         x0, v_approach = x, v
         x = x + h * v
 
-        shake = shake_sweep(sys, fr0, h, tol)
+        shake = shake_sweep(sys, fr0, h, tol, set_alpha=lambda a: a / (h * h / 2))
 
         def shake_contacts(i, carry):           # the contacts' position pass after each SHAKE sweep
             x, v, mu, imp = carry
@@ -110,23 +113,31 @@ class RATTLE(Solver):
 
         carry = (x, v, zero, None if cs is None else zero_impulses(topo, cs.ct, dtype))
         unroll = cs is None and _unroll(self.iterations, topo)      # a sweep with contacts stays a loop
-        x, v, mu, imp = lax.fori_loop(0, self.iterations, shake_contacts, carry, unroll=unroll)
+        bound = tol * lax.stop_gradient(_extent(x0))
+        x, v, mu, imp = _sweeps(shake_contacts, carry, self.iterations, unroll, lambda a, b: _moved(a[0], b[0]), bound)
 
         fr1 = frames(sys, x)
-        v, spring1 = _spring_kick(sys, fr1, v, h / 2)
+        springs = tuple(R.gamma(f, h / math.sqrt(2)) for f in fr1)     # a set's rows: alpha / (h^2 / 2)
         v = sys.apply_gravity(v, h / 2)
 
         def project_colour(v, blk, rows):
-            f, r, mu, lam = rows
+            f, r, mu, lam, spring = rows
             rel = R.rel(topo, blk, f, v)
-            if getattr(blk, "generic", None) is not None:      # a set's hard rows: J(x) v = 0; compliant rows are springs
-                live = f.alpha == 0
+            if getattr(blk, "generic", None) is not None:      # a set's rows: J(x) v = 0, compliant ones springs
+                live = f.k > 0
                 if blk.has_rope:    # a unilateral row constrains the velocity only where the position stage held it
                     held = (mu > 0) | (f.C >= 0)
                     live = live & (held if blk.all_rope else (held | ~blk.rope.array))
-                step = jnp.where(live, rel * f.k, 0)
+                rhs = rel + jnp.where(f.alpha > 0, f.C / h, 0)
+                step = jnp.where(live, R.solve(topo, blk, f, rhs, lam, spring), 0)
                 new = R.accumulate(blk, lam, step)
                 return R.apply(topo, blk, f, v, new - lam), new
+            zero = r == 0      # a rod of rest length 0: the whole relative velocity, along itself (`shake_sweep`)
+            vi, vj = L.gather_pair(topo, blk, v)
+            u, inv = vj - vi, L.safe_length(vj - vi)[1]
+            f = f._replace(n=jnp.where(zero, u * inv, f.n),
+                           k=jnp.where(zero, L.safe_reciprocal(f.wi + f.wj) * (inv > 0).astype(inv.dtype), f.k))
+            rel = R.rel(topo, blk, f, v)
             active = jnp.abs(rel) * h > tol * r
             if blk.has_rope:  # a rope that is slack after the drift does not constrain the velocity
                 taut = f.C > -tol * jnp.maximum(r, tiny)
@@ -138,30 +149,87 @@ class RATTLE(Solver):
         def project(_, carry):
             v, lam = carry
             lam = list(lam)
-            for c, (blk, f, r) in enumerate(zip(topo.blocks, fr1, sys.rest)):
-                v, lam[c] = L.each_colour(blk, project_colour, v, (f, r, mu[c], lam[c]))
+            for c, (blk, f, r, g) in enumerate(zip(topo.blocks, fr1, sys.rest, springs)):
+                v, lam[c] = L.each_colour(blk, project_colour, v, (f, r, mu[c], lam[c], g))
             return v, tuple(lam)
 
-        v, lam2 = lax.fori_loop(0, self.iterations, project, (v, zero), unroll=_unroll(self.iterations, topo))
+        lam2 = tuple(R.clamp(blk, m / h) * ((f.k > 0) & ((r != 0) if blk.generic is None else True)).astype(dtype)
+                     for blk, m, f, r in zip(topo.blocks, mu, fr1, sys.rest))
+        v = apply_impulses(sys, v, fr1, lam2)       # warm started with the position stage's impulses
+        v, lam2 = _sweeps(project, (v, lam2), self.iterations, _unroll(self.iterations, topo),
+                          lambda a, b: h * _moved(a[0], b[0]), bound)
         lam = tuple(map(operator.add, (m / h for m in mu), lam2))
-        lam = tuple(l + s0 + s1 for l, s0, s1 in zip(lam, spring0, spring1))
         if cs is None:
             return x, v, lam
-        v, imp = contact.position_velocity_pass(cs, sys.w, x, v_approach, v, imp, h, partners)
+        v_free = sys.apply_gravity(v_approach, h / 2)
+        v, imp = _contact_velocities(sys, x, v_approach, v_free, v, imp, h, partners, self.iterations, bound)
         return x, v, with_contacts(sys, lam, with_found(imp, found))
 
 
-def _spring_kick(sys, fr, v, dt):
-    """A half kick of the constraint sets' compliant rows, which RATTLE integrates as the springs they are: the
-    force -(C / alpha) dC/dx (potential energy C^2 / (2 alpha)) held for `dt`. Returns (v, per-block impulses:
-    C_lib / alpha dt for compliant rows, 0 elsewhere)."""
-    out = []
-    for blk, f in zip(sys.topology.blocks, fr):
-        if blk.generic is None:
-            out.append(0)
-            continue
-        soft = (f.alpha > 0) & (f.k > 0)
-        imp = jnp.where(soft, f.C / jnp.where(soft, f.alpha, 1), 0) * dt
-        v = R.apply(sys.topology, blk, f, v, imp)
-        out.append(imp)
-    return v, tuple(out)
+
+def default_tolerance(dtype) -> float:
+    """RATTLE's default `tolerance` for positions of `dtype`: 1e-10 in float64, 1e-6 in float32 (a few ulps of
+    the model's extent: a smaller change is rounding)."""
+    return 1e-10 if jnp.finfo(dtype).bits > 32 else 1e-6
+
+
+def _extent(x):
+    """The model's size: the largest range of the positions x [dim, ...] along an axis (m)."""
+    flat = x.reshape(x.shape[0], -1)
+    return jnp.max(jnp.max(flat, axis=1) - jnp.min(flat, axis=1))
+
+
+def _moved(a, b):
+    """The largest change of one coordinate from a to b."""
+    return jnp.max(jnp.abs(b - a))
+
+
+def _sweeps(body, carry, iterations: int, unroll: bool, change, bound):
+    """Up to `iterations` sweeps `body(i, carry) -> carry`: once a sweep changed the carry by no more than
+    `bound` (`change(old, new)`, a scalar), the rest are skipped, each a no-op branch of a `lax.cond` in a
+    static `fori_loop` (reverse-mode differentiable, unlike a `while_loop`). Under `jax.vmap` the cond's
+    predicate is batched and every sweep runs (the converged ones' results discarded)."""
+
+    def gated(i, state):
+        carry, done = state
+
+        def run(c):
+            new = body(i, c)
+            return new, change(c, new) <= bound
+
+        return lax.cond(done, lambda c: (c, jnp.ones((), bool)), run, carry)
+
+    return lax.fori_loop(0, iterations, gated, (carry, jnp.zeros((), bool)), unroll=unroll)[0]
+
+
+def _contact_velocities(sys, x, v_approach, v_free, v, imp, h, partners, iterations: int, bound):
+    """The contacts' velocity stage: each contact that pushed in the position stage (lam_n > 0) gets a velocity
+    row (`contact_rows.velocity_rows`: restitution target from the approach velocity, dynamic friction), swept
+    from the position stage's impulses imp / h to convergence (`_sweeps`) as the constraints' projection is: the
+    end-of-step velocity of a contact at rest is then 0, the second half kick of gravity taken out, as a rod's
+    J v = 0. In two phases, as the velocity solvers' (`common.solve_phases`): compression (every target 0), then
+    restitution, whose change is scaled back where it would raise the kinetic energy above that of `v_free`
+    (the step's velocity without impulses) or of the compression phase (`contact.restitution_scale`). Returns
+    (v, the step's contact impulses in N s)."""
+    cs, w = sys.contact, sys.w
+    obs, pairs = contact_rows.velocity_rows(cs, w, x, v_approach, imp, partners)
+    obs, pairs = (None if r is None else r._replace(target_c=jnp.zeros_like(r.target), warm=r.k > 0)
+                  for r in (obs, pairs))
+    fields = ("obs_n", "obs_t", "pair_n", "pair_t")
+    start = imp._replace(**{f: getattr(imp, f) / h for f in fields})
+    if partners is not None:
+        start = start._replace(partners=partners)
+    # warm started with the position stage's impulses again (the velocity stage's impulse of a contact at rest)
+    v, warm = contact.warm_start(cs, w, v, obs, pairs, start)
+    start = start._replace(**{f: getattr(start, f) + getattr(warm, f) for f in fields})
+
+    def solve(late, carry):
+        o, p = contact_rows.phase(obs, late), contact_rows.phase(pairs, late)
+        return _sweeps(lambda _, c: contact.sweep(cs, w, c[0], o, p, c[1]), carry, iterations, False,
+                       lambda a, b: h * _moved(a[0], b[0]), bound)
+
+    compressed = solve(False, (v, start))
+    bounced = solve(True, compressed)
+    scale = contact.restitution_scale(w, v_free, compressed[0], bounced[0], contact_rows.bouncing(obs, pairs))
+    return jax.tree.map(lambda a, b: a + scale * (b - a) if jnp.issubdtype(a.dtype, jnp.floating) else b,
+                        compressed, bounced)
