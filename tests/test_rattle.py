@@ -1,0 +1,103 @@
+"""RATTLE: its compliant rows are implicit (a compliant SHAKE, alpha / (h^2 / 2) on the position multiplier, and the
+velocity stage's implicit spring), its sweeps run to a tolerance, and its gradients with respect to a compliance
+equal float64 central differences. The conformance cells (jaxcon/bench/conformance/cases_rattle.py) check the
+stiff set, the cantilever at its minimum, the pendulum's energy and the static column."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxcon as jc
+from jaxcon.bench.conformance.cases_rattle import _bend
+from jaxcon.solvers.rattle import default_tolerance
+
+
+def _flat_cantilever(n=3, link=0.05, mass=0.01, alpha=0.1):
+    """A 2-D cantilever released straight (particles 0 and 1 fixed): it droops and swings on its bending springs."""
+    pos = np.stack([link * np.arange(-1, n + 1), np.zeros(n + 2)], 1)
+    bend = jc.Constraint(_bend, [(i - 1, i, i + 1) for i in range(1, n + 1)], {}, compliance=alpha, name="bend")
+    return jc.build(pos, np.full(n + 2, mass), rods=[(i, i + 1) for i in range(n + 1)], fixed=[0, 1],
+                    constraints=[bend])
+
+
+@pytest.mark.parametrize("solver, rtol", [(jc.RATTLE(40, tolerance=0.0), 1e-6), (jc.RATTLE(), 1e-4)],
+                         ids=["fixed-sweeps", "defaults"])
+def test_gradient_with_respect_to_compliance_equals_central_differences(solver, rtol):
+    """The cantilever of bending springs (alpha 0.1, h omega above 2 at 240 Hz): its tip's height after 0.25 s as
+    a function of the springs' compliance. jax.grad and jax.jvp equal float64 central differences (the explicit
+    springs' gradient was 1e53 off). With a tolerance the sweep count can change between the two evaluations of
+    a difference, so the defaults are held to 1e-4, fixed sweeps to 1e-6."""
+    model, state = _flat_cantilever()
+    bend = model.constraints[0]
+
+    def tip(alpha):
+        m = model.replace(constraints=(bend.replace(compliance=jnp.full(bend.m, alpha)),))
+        final, _ = jc.rollout(m, state, solver, 1 / 240, 60)
+        return final.x[-1, 1]
+
+    a = 0.1
+    g = float(jax.jit(jax.grad(tip))(a))
+    fwd = float(jax.jit(lambda a: jax.jvp(tip, (a,), (1.0,))[1])(a))
+    d = 1e-5 * a
+    fd = (float(tip(a + d)) - float(tip(a - d))) / (2 * d)
+    assert np.isfinite(g) and abs(fd) > 1e-3          # the tip does depend on the compliance
+    assert g == pytest.approx(fd, rel=rtol)
+    assert fwd == pytest.approx(g, rel=1e-9)
+
+
+def test_stiff_compliant_set_is_stable_and_tends_to_the_hard_row():
+    """A pendulum on a distance set: alpha 1e-12 (far beyond an explicit spring's limit at 240 Hz) stays bounded
+    and stretches at most alpha T (T <= 3 m g); alpha -> 0 gives the hard row's trajectory."""
+    x = np.array([[0.0, 0.0], [1.0, 0.0]])
+
+    def length(x, p):
+        return p["L"] - jnp.sqrt(jnp.sum((x[1] - x[0]) ** 2))
+
+    paths = {}
+    for alpha in (1e-12, 0.0):
+        link = jc.Constraint(length, [[0, 1]], {"L": [1.0]}, compliance=alpha)
+        model, state = jc.build(x, 1.0, fixed=[0], constraints=link)
+        _, traj = jc.rollout(model, state, jc.RATTLE(), 1 / 240, 240)
+        paths[alpha] = np.asarray(traj.x)
+    d = np.linalg.norm(paths[1e-12][:, 1], axis=1)
+    assert np.max(np.abs(d - 1)) <= 3 * 9.81 * 1e-12 * 1.05
+    assert np.max(np.abs(paths[1e-12] - paths[0.0])) < 1e-8
+
+
+def test_compliant_hanging_mass_is_static_at_alpha_t_with_zero_velocity():
+    """A mass on a compliant distance set, started at its analytic rest (stretch alpha m g): RATTLE keeps it
+    there (stretch alpha m g within 1e-9 relative) and reports v = 0 and an impulse m g dt per step."""
+    alpha, m, dt = 1e-3, 0.5, 1 / 120
+    x = np.array([[0.0, 0.0], [0.0, -(1.0 + alpha * m * 9.81)]])
+
+    def length(x, p):
+        return p["L"] - jnp.sqrt(jnp.sum((x[1] - x[0]) ** 2))
+
+    link = jc.Constraint(length, [[0, 1]], {"L": [1.0]}, compliance=alpha)
+    model, state = jc.build(x, m, fixed=[0], constraints=link)
+    final, traj = jc.rollout(model, state, jc.RATTLE(), dt, 120)
+    stretch = np.linalg.norm(np.asarray(traj.x[:, 1]), axis=1) - 1
+    np.testing.assert_allclose(stretch, alpha * m * 9.81, rtol=1e-9)
+    assert float(np.max(np.abs(np.asarray(traj.v)))) < 1e-9
+    np.testing.assert_allclose(np.asarray(traj.lam), m * 9.81 * dt, rtol=1e-9)
+
+
+def test_default_tolerance_follows_the_dtype():
+    assert default_tolerance(np.float64) == 1e-10
+    assert default_tolerance(np.float32) == 1e-6
+    assert jc.RATTLE().tolerance is None and jc.RATTLE().iterations == 50
+    with pytest.raises(ValueError, match="RATTLE: `tolerance` must be >= 0"):
+        jc.RATTLE(tolerance=-1.0)
+
+
+def test_sweeps_stop_at_the_tolerance():
+    """The 3-link pendulum: to the default tolerance RATTLE needs far fewer sweeps than its maximum, so a maximum of
+    200 gives the same trajectory as 50 (bitwise: the sweeps after convergence are skipped), and a loose tolerance
+    a different one."""
+    th = np.array([1.2, 0.6, -0.4])
+    pos = np.vstack([[0, 0], np.cumsum(np.stack([0.5 * np.sin(th), -0.5 * np.cos(th)], 1), 0)])
+    model, state = jc.build(pos, np.ones(4), rods=[(0, 1), (1, 2), (2, 3)], fixed=[0])
+    run = {k: np.asarray(jc.rollout(model, state, s, 1 / 240, 120)[0].x)
+           for k, s in (("50", jc.RATTLE()), ("200", jc.RATTLE(200)), ("loose", jc.RATTLE(tolerance=1e-3)))}
+    np.testing.assert_array_equal(run["50"], run["200"])
+    assert np.max(np.abs(run["loose"] - run["50"])) > 1e-9
