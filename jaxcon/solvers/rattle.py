@@ -30,6 +30,11 @@ _UNROLL_ITERATIONS = 8
 _UNROLL_BLOCKS = 16
 
 
+#: Sweeps to a tolerance are run in chunks of this many, the convergence checked after each chunk: a `lax.cond` per
+#: sweep cost more than the sweeps on small systems (docs/solvers.md).
+_CHUNK = 4
+
+
 def _unroll(iterations: int, topo) -> bool:
     return iterations <= _UNROLL_ITERATIONS and iterations * max(len(topo.blocks), 1) <= _UNROLL_BLOCKS
 
@@ -45,13 +50,25 @@ class RATTLE(Solver):
          constraint moved along n0 (x_i += w_i n0 mu, x_j -= w_j n0 mu,
          mu = (|d|^2 - L^2) / (2 (w_i + w_j) d . n0)) until |x_j - x_i| = L; v' gets the same correction / h.
       2. half kick: v = v' + h/2 g; then sweeps projecting the velocities onto J(x') v = 0 (directions n1 at
-         the new positions): dlam = n1 . (v_j - v_i) / (w_i + w_j).
+         the new positions): dlam = n1 . (v_j - v_i) / (w_i + w_j), started from the position stage's
+         impulses mu / h (applied along n1: a constraint at rest needs exactly those).
 
-    Both stages run exactly `iterations` Gauss-Seidel sweeps (static; reverse-mode differentiable). The
-    `tolerance` is an early-out by masking: in a sweep, a constraint whose residual is already at or below
-    `tolerance` gets no update (position residual |d^2 - L^2| / (2 L^2) ~ relative stretch; velocity residual
-    |n1 . (v_j - v_i)| h / L ~ relative stretch the velocity would cause over one step). It saves no time
-    (the sweep is still computed) but stops updating converged constraints, as SHAKE's classic loop does.
+    A rod of rest length 0 holds its two particles together; it has no direction at its solution, so both
+    stages take its current one (the relative position, then the relative velocity) and remove all of it.
+
+    A constraint set's compliant rows (compliance alpha > 0, potential C^2 / (2 alpha)) are implicit springs, as
+    XPBD's: SHAKE solves C_lib(x') = a mu with a = alpha / (h^2 / 2) (mu / h is half the step's impulse, so at
+    rest C = alpha T), and the velocity stage C_lib(x') + h rel(v) = a' lam2 with a' = alpha / (h^2 / 2) at
+    velocity level (`rows.solve`, `rows.gamma`): a spring the step does not resolve is damped rather than
+    unstable, alpha -> 0 is the hard row, and a static spring rests at alpha T with v = 0. The springs are first
+    order in h (implicit Euler, as XPBD's); hard rows keep RATTLE's second order.
+
+    Sweeps: Gauss-Seidel, up to `iterations` per stage, stopping once a sweep moves no coordinate by more than
+    `tolerance` times the model's extent (position stage; velocity stage: h times the velocity change), checked
+    every `_CHUNK` sweeps (`_sweeps`: a static loop of `lax.cond`s, so jax.grad, jax.jvp and jax.vmap work;
+    under vmap every sweep runs). `tolerance=None` is dtype-aware (`default_tolerance`); `tolerance=0` runs
+    exactly `iterations` sweeps. Within a sweep a rod whose residual is at or below `tolerance` is not updated
+    (|d^2 - L^2| / (2 L^2); velocity: |n1 . (v_j - v_i)| h / L).
 
     Ropes: a rope takes part only while it is taut; its accumulated impulse of each stage is clamped >= 0
     (a slack rope is free). The returned lam is the constraint impulse over the step (mu / h + the velocity
@@ -60,22 +77,22 @@ class RATTLE(Solver):
     Contacts (`planes`, `spheres`, `collide`) are unilateral rows in both stages, as XPBD's (docs/contacts.md):
     every SHAKE sweep ends with the contacts' position pass (`contact.position_pass`: overlaps pushed out along
     the normal with lam_n >= 0, static friction), whose correction / h goes into v' as the constraints' does; the
-    velocity stage ends with their velocity pass (`contact.position_velocity_pass`: restitution from the
-    approach velocity v + h/2 g, dynamic friction). Contact impulses are not symmetric in time, so a model with
-    contacts loses RATTLE's time reversibility at every contact (not elsewhere). The velocity pass comes after
-    the constraints' velocity projection, so in a step with an impact the rods at the particles it moves end
-    with J v != 0 (up to 0.5 m/s on a 6-link chain landing at dt 1/240, against XPBD's 0.03), which the next
-    step's SHAKE removes; running the contacts inside the projection sweeps instead gained kinetic energy on
-    the break. A neighbour grid's step searches
-    its pairs once (`common.grid_substepped`).
+    velocity stage ends with the contacts' velocity rows swept to the same tolerance (`_contact_velocities`:
+    restitution from the approach velocity v + h/2 g, dynamic friction, in a compression and a restitution
+    phase). Contact impulses are not symmetric in time, so a model with contacts loses RATTLE's time
+    reversibility at every contact (not elsewhere). The contacts' velocity rows come after the constraints'
+    velocity projection, so in a step with an impact the rods at the particles they move end with J v != 0,
+    which the next step's SHAKE removes; running the contacts inside the projection sweeps instead gained
+    kinetic energy on the break. A neighbour grid's step searches its pairs once (`common.grid_substepped`).
 
     Args:
-      iterations: Gauss-Seidel sweeps per stage, static, >= 1.
-      tolerance: residual below which a constraint is no longer updated, >= 0 (a leaf; 0: always update).
+      iterations: the most Gauss-Seidel sweeps per stage, static, >= 1.
+      tolerance: static, >= 0, or None: 1e-8 in float64, 1e-6 in float32 (`default_tolerance`); relative to
+        the model's extent. 0: always exactly `iterations` sweeps.
     """
 
-    iterations: int = static_field(default=50)
-    tolerance: Any = None
+    iterations: int = static_field(default=32)
+    tolerance: Any = static_field(default=None)
 
     def __post_init__(self):
         check_int("RATTLE", "iterations", self.iterations, 1)
@@ -112,8 +129,9 @@ class RATTLE(Solver):
             return p, v + (p - x) / h, mu, imp
 
         carry = (x, v, zero, None if cs is None else zero_impulses(topo, cs.ct, dtype))
-        unroll = cs is None and _unroll(self.iterations, topo)      # a sweep with contacts stays a loop
-        bound = tol * lax.stop_gradient(_extent(x0))
+        written = self.tolerance == 0 and _unroll(self.iterations, topo)
+        unroll = cs is None and written      # a sweep with contacts stays a loop
+        bound = None if self.tolerance == 0 else tol * lax.stop_gradient(_extent(x0))
         x, v, mu, imp = _sweeps(shake_contacts, carry, self.iterations, unroll, lambda a, b: _moved(a[0], b[0]), bound)
 
         fr1 = frames(sys, x)
@@ -156,7 +174,7 @@ class RATTLE(Solver):
         lam2 = tuple(R.clamp(blk, m / h) * ((f.k > 0) & ((r != 0) if blk.generic is None else True)).astype(dtype)
                      for blk, m, f, r in zip(topo.blocks, mu, fr1, sys.rest))
         v = apply_impulses(sys, v, fr1, lam2)       # warm started with the position stage's impulses
-        v, lam2 = _sweeps(project, (v, lam2), self.iterations, _unroll(self.iterations, topo),
+        v, lam2 = _sweeps(project, (v, lam2), self.iterations, written,
                           lambda a, b: h * _moved(a[0], b[0]), bound)
         lam = tuple(map(operator.add, (m / h for m in mu), lam2))
         if cs is None:
@@ -168,9 +186,9 @@ class RATTLE(Solver):
 
 
 def default_tolerance(dtype) -> float:
-    """RATTLE's default `tolerance` for positions of `dtype`: 1e-10 in float64, 1e-6 in float32 (a few ulps of
+    """RATTLE's default `tolerance` for positions of `dtype`: 1e-8 in float64, 1e-6 in float32 (a few ulps of
     the model's extent: a smaller change is rounding)."""
-    return 1e-10 if jnp.finfo(dtype).bits > 32 else 1e-6
+    return 1e-8 if jnp.finfo(dtype).bits > 32 else 1e-6
 
 
 def _extent(x):
@@ -185,21 +203,30 @@ def _moved(a, b):
 
 
 def _sweeps(body, carry, iterations: int, unroll: bool, change, bound):
-    """Up to `iterations` sweeps `body(i, carry) -> carry`: once a sweep changed the carry by no more than
-    `bound` (`change(old, new)`, a scalar), the rest are skipped, each a no-op branch of a `lax.cond` in a
-    static `fori_loop` (reverse-mode differentiable, unlike a `while_loop`). Under `jax.vmap` the cond's
-    predicate is batched and every sweep runs (the converged ones' results discarded)."""
+    """Up to `iterations` sweeps `body(i, carry) -> carry`. `bound` None: all of them (`unroll`: written out).
+    Otherwise in chunks of `_CHUNK` sweeps (the last one's sweeps beyond `iterations` discarded), each chunk the
+    taken branch of a `lax.cond` in a static `fori_loop` (reverse-mode differentiable, unlike a `while_loop`):
+    once a chunk's last sweep changed the carry by no more than `bound` (`change(old, new)`, a scalar), the
+    remaining chunks are no-op branches. One sweep is traced once. Under `jax.vmap` the cond's predicate is
+    batched and every sweep runs (the converged ones' results discarded)."""
+    if bound is None:
+        return lax.fori_loop(0, iterations, body, carry, unroll=unroll)
 
-    def gated(i, state):
-        carry, done = state
+    def chunk(n, state):
+        def sweep(k, pair):
+            old, cur = pair
+            new = body(k, cur)
+            if iterations % _CHUNK:         # the last chunk's sweeps beyond `iterations` change nothing
+                new = jax.tree.map(lambda a, b: jnp.where(n * _CHUNK + k < iterations, a, b), new, cur)
+            return cur, new
 
         def run(c):
-            new = body(i, c)
-            return new, change(c, new) <= bound
+            old, new = lax.fori_loop(0, _CHUNK, sweep, (c, c))
+            return new, change(old, new) <= bound
 
-        return lax.cond(done, lambda c: (c, jnp.ones((), bool)), run, carry)
+        return lax.cond(state[1], lambda c: (c, jnp.ones((), bool)), run, state[0])
 
-    return lax.fori_loop(0, iterations, gated, (carry, jnp.zeros((), bool)), unroll=unroll)[0]
+    return lax.fori_loop(0, -(-iterations // _CHUNK), chunk, (carry, jnp.zeros((), bool)))[0]
 
 
 def _contact_velocities(sys, x, v_approach, v_free, v, imp, h, partners, iterations: int, bound):
