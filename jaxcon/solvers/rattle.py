@@ -14,7 +14,7 @@ from jaxcon.core import contact_rows
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
 from jaxcon.core.checks import check_int, check_scalar
-from jaxcon.core.pytree import pytree_dataclass, static_field
+from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
 from jaxcon.core.system import Solver
 from jaxcon.core.contact import zero_impulses
 from jaxcon.solvers import contact
@@ -98,6 +98,10 @@ class RATTLE(Solver):
         check_int("RATTLE", "iterations", self.iterations, 1)
         if self.tolerance is not None:
             check_scalar("RATTLE", "tolerance", self.tolerance, 0.0)
+            if concrete(self.tolerance) is None:
+                raise ValueError("RATTLE: `tolerance` is static (it decides how the sweeps run): pass a Python float, "
+                                 "not a traced value")
+            object.__setattr__(self, "tolerance", float(self.tolerance))     # hashable, whatever scalar came in
 
     supports_contacts = True
 
