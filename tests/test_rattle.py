@@ -100,3 +100,14 @@ def test_sweeps_stop_at_the_tolerance():
     np.testing.assert_array_equal(run["64"], run["200"])
     assert np.max(np.abs(run["32"] - run["64"])) < 1e-7
     assert np.max(np.abs(run["loose"] - run["64"])) > 1e-6
+
+
+def test_rod_of_rest_length_zero_holds_its_bob_at_the_pivot():
+    """A bob 0.5 m from a fixed pivot on a rod of rest length 0: moved along the start-of-step direction, SHAKE could
+    not remove the sideways part gravity adds and the bob was 0.26 m away after 1 s; projected along the current
+    direction it is at the pivot after the first step, at rest."""
+    model, state = jc.build(np.array([[0.0, 0.0], [0.5, 0.0]]), [1.0, 1.0], rods=[(0, 1)], fixed=[0],
+                            rest_lengths=[0.0])
+    final, traj = jc.rollout(model, state, jc.RATTLE(), 1 / 240, 240)
+    assert float(np.max(np.linalg.norm(np.asarray(traj.x[:, 1]), axis=-1))) < 1e-12
+    assert float(np.max(np.abs(np.asarray(final.v)))) < 1e-12
