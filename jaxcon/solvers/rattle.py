@@ -91,7 +91,7 @@ class RATTLE(Solver):
         the model's extent. 0: always exactly `iterations` sweeps.
     """
 
-    iterations: int = static_field(default=32)
+    iterations: int = static_field(default=64)
     tolerance: Any = static_field(default=None)
 
     def __post_init__(self):
