@@ -22,8 +22,8 @@ def _flat_cantilever(n=3, link=0.05, mass=0.01, alpha=0.1):
 
 def test_gradient_with_respect_to_compliance_equals_central_differences():
     """A cantilever of bending springs (alpha 0.1, h omega above 2 at 240 Hz) released straight: its tip's height
-    after 30 steps as a function of the springs' compliance, RATTLE at its defaults. jax.grad and jax.jvp equal
-    float64 central differences (the explicit springs' gradient was 1e53 off)."""
+    after 30 steps as a function of the springs' compliance, RATTLE at its defaults. jax.grad equals float64
+    central differences (the explicit springs' gradient was 1e53 off)."""
     model, state = _flat_cantilever(n=2)
     bend = model.constraints[0]
 
@@ -34,12 +34,10 @@ def test_gradient_with_respect_to_compliance_equals_central_differences():
 
     a = 0.1
     g = float(jax.jit(jax.grad(tip))(a))
-    fwd = float(jax.jit(lambda a: jax.jvp(tip, (a,), (1.0,))[1])(a))
     d = 1e-5 * a
     fd = (float(tip(a + d)) - float(tip(a - d))) / (2 * d)
     assert np.isfinite(g) and abs(fd) > 1e-3          # the tip does depend on the compliance
     assert g == pytest.approx(fd, rel=1e-5)
-    assert fwd == pytest.approx(g, rel=1e-9)
 
 
 def test_stiff_compliant_set_is_stable_and_tends_to_the_hard_row():
