@@ -805,11 +805,11 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None, slop=0.0):
         warm = impact | (gap <= (s if window else 0))
         f = Rows(n, None, k, winv, toi, gap, None, near=C <= tol, warm=warm)
         # the impact propagation's view of the row (`chain_bounces`): the approach speed it must exceed to close the
-        # gap within the step (0 for impacts and touching rows; none for a separated row that closes it already and
-        # is no impact: one that touches only at the end of the step, or a later impact `_first_impacts` cleared),
-        # and the external forces' share up to the impact
+        # gap within the step (0 for impacts and rows touching within rounding; none for a separated row that
+        # approaches and closes it already but is no impact: one that touches only at the end of the step, or a
+        # later impact `_first_impacts` cleared), and the external forces' share up to the impact
         reach = jnp.maximum(C_n, 0) / h
-        reach = jnp.where(impact | (gap <= 0), 0, jnp.where(-vn0 < reach, reach, jnp.inf))
+        reach = jnp.where(impact | (C <= tol), 0, jnp.where((vn0 >= 0) | (-vn0 < reach), reach, jnp.inf))
         return f, (C_n, vn0, vn1, impact, PUSH_SLOPS * s), (n, k, reach, (vn1 - vn0) * toi / h)
 
     def finish(prep, bounce):

@@ -535,8 +535,8 @@ def solve_phases(sys, v_free, obs, pairs, iterations: int, carry, body, slot_maj
     carry. A model without contacts runs them in one loop. With contacts it runs in two phases sharing the
     iterations (at least one each): compression (every target without restitution), then restitution,
     continued from it, ending with the contacts' restitution stage (`contact.restitution_stage`, where the carry
-    ends with the contact `Impulses`); the restitution phase's change is scaled back where it would raise the kinetic energy
-    (contact.restitution_scale). One loop, whose rows switch targets between the phases, so the iteration is
+    ends with the contact `Impulses`); the restitution phase's change is scaled back where it would raise the
+    kinetic energy (contact.restitution_scale). One loop, whose rows switch targets between the phases, so the iteration is
     traced and compiled once. Returns the carry mixed leaf by leaf.
 
     `slot_major`: `body` reads the contact rows only through `contact.sweep`, so the carry's pair impulses of a grid

@@ -160,6 +160,7 @@ class SoftStep(Solver):
         inv_h = 1 / h
         v, lam = _sweep(topo, v, lam, fr, lambda f: bias_rate * f.C, mass_scale, impulse_scale, inv_h)
         v, imp = contact.sweep(cs, w, v, solve_obs, solve_pairs, imp, softness)
+        v, imp = contact.restitution_stage(cs, w, v, obs, pairs, imp)
         x = x + h * v
         if cs is not None:
             x = x - contact.impact_times(cs, obs, pairs, imp, x.shape) * (v - v_free)
@@ -173,5 +174,4 @@ class SoftStep(Solver):
                 return v, lam, imp
 
             v, lam, imp = lax.fori_loop(0, self.relax_iterations, relax, (v, lam, imp), unroll=topo.unroll)
-        v, imp = contact.restitution_stage(cs, w, v, obs, pairs, imp)
         return x, v, with_contacts(sys, lam, imp)

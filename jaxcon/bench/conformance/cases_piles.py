@@ -122,7 +122,8 @@ def _peer_speed(step, velocities, balls_in: int, full: bool) -> float:
       (threshold 0.01 m/s), no friction, dt 1/240; ball 0 released from 60 degrees (full; reduced: 2 degrees
       before the bottom at the swing's speed). The number: the last ball's speed / v0, 0.05 s after it moves.
       Bound: >= 0.95, the others <= 0.05, and the impact's step adds no more than 1e-3 of the incoming
-      kinetic energy to the total (kinetic + gravity). The classic result; Box2D 2.3 and pymunk 7 in the same set-up.""",
+      kinetic energy to the total (kinetic + gravity). The classic result; Box2D 2.3 and pymunk 7 in the
+      same set-up.""",
       "momentum and energy of sequential impacts; Box2D, pymunk",
       peers={"Box2D": lambda full: _box2d_cradle(1, full), "pymunk": lambda full: _pymunk_cradle(1, full)})
 def cradle_one(solver_name: str, full: bool) -> Outcome:
