@@ -79,43 +79,46 @@ def velocity_bias(topo: Topology, fr: tuple, beta, h, slop=None) -> tuple:
     return tuple(out)
 
 
-def warm_rows(f, lam, h):
-    """The previous impulses `lam` of a block that a velocity-level (sub)step of length h starts from: all of them,
-    but a constraint set's compliant row's scaled by gamma / (J M^-1 J^T + gamma) = alpha / (alpha + h^2 J M^-1 J^T)
-    (`rows.gamma`): in full where the spring is soft for the step, not at all where it is stiff.
+def spring_rows(fr: tuple) -> tuple:
+    """Per block, where its rows are compliant springs (a constraint set's rows of compliance > 0), or None for
+    a block without compliance (rods, ropes)."""
+    return tuple(None if R.compliant(f) is None else f.alpha > 0 for f in fr)
 
-    A compliant row's solve (`rows.solve`) converges to the same impulse from any start; the warm start only helps
-    sweeps that do not converge. A soft spring's impulse (gamma well above J M^-1 J^T: h omega well below 1, omega =
-    sqrt(J M^-1 J^T / alpha) the row's own frequency) is its force h C / alpha, smooth in the positions: the last
-    one is a good start, and the rows around it need it (the compliant 5-link arm of tests/test_constraints.py at
-    240 Hz, Jacobi(10), 1 s: 1.9 mm from its equilibrium with this scale, 1.6 mm warm-started in full, 28 mm started
-    from 0). A stiff spring's (gamma well below J M^-1 J^T: h omega well above 1, a spring the step does not
-    resolve) is a hard row's with the bias C / h, Baumgarte at beta = 1: the last impulse holds the last step's
-    correction, which the new bias asks for again, and sweeps that do not converge apply it twice, so the system
-    gains energy. Measured on `scenes.cloth(12, 12, bending=1e-2)` (every hinge stiff at dt 1/60: gamma / J M^-1 J^T
-    below 1e-3), float32, 2 s: warm-started in full, PGS(20) stretched its rods by up to 59x, SoftStep 592x,
-    Jacobi(20) 401x, and PGS(200) gained 100 J and 216%, while Direct (the same linearised rows, solved exactly)
-    held 2%. Scaled: PGS(200) 1.9% on Direct's path (lowest point 1 mm apart at 2 s), PGS(20) 14%, SoftStep 11%,
-    Jacobi(20) 155% (Jacobi's and PGS's rods still gain energy through their own warm start there: see the `PGS`
-    warm_start_factor). A hanging 30-link chain of distance rows of compliance 1e-8 (float64, PGS(20), 4 s):
-    stretched 8e11x, 12% scaled. The scale is smooth in alpha (a fitted leaf); hard rows (alpha = 0) and rods keep
-    their whole warm start."""
-    if R.compliant(f) is None:
-        return lam
-    return lam * jnp.where(f.alpha > 0, f.alpha * L.safe_reciprocal(f.alpha + h * h * f.s), 1)
+
+def spring_share(sys: System, v, dv):
+    """The share t in [0, 1] of the compliant rows' warm-start velocity change `dv` to apply to `v`: all of it
+    unless it would raise the kinetic energy, else the largest share that does not, t = -2 v.M dv / dv.M dv
+    (K(v + t dv) <= K(v)). One share per model (per copy of a batch-minor model). At rest under a load the
+    warm start removes the load's velocity, so t = 1 there: the last impulses are kept in full and the static
+    stretch is alpha times the force for any number of sweeps (docs/constraints.md, compliant warm start)."""
+    m = L.safe_reciprocal(sys.w)
+    axes = tuple(range(v.ndim - 1)) if sys.topology.batch is not None else None
+    a = jnp.sum(m * v * dv, axis=axes)
+    b = jnp.sum(m * dv * dv, axis=axes)
+    return jnp.where(b > 0, jnp.clip(-2 * a * L.safe_reciprocal(b), 0, 1), 1)
 
 
 def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, h, factor=1.0, gradient: bool = True):
-    """Apply `factor` times the previous impulses (ropes clamped, undefined constraints dropped, a set's compliant
-    rows scaled for the (sub)step of length h: `warm_rows`) to `v`. Returns (v, lam): the velocities after the
-    warm start and the accumulated impulses to iterate from."""
+    """Apply `factor` times the previous impulses (ropes clamped, undefined constraints dropped) to `v`; a
+    constraint set's compliant rows together, by the share `spring_share` of theirs that does not raise the
+    kinetic energy. Returns (v, lam): the velocities after the warm start and the accumulated impulses to
+    iterate from. (`h` is the (sub)step, unused.)"""
+    del h
     if not gradient:
         lam_ws = lax.stop_gradient(lam_ws)
     if not (isinstance(factor, (int, float)) and factor == 1):     # a plain 1 costs nothing
         lam_ws = tuple(l * factor for l in lam_ws)
-    lam = tuple(R.clamp(blk, warm_rows(f, l, h)) * (f.k > 0).astype(f.k.dtype)
+    lam = tuple(R.clamp(blk, l) * (f.k > 0).astype(f.k.dtype)
                 for blk, f, l in zip(sys.topology.blocks, fr, lam_ws))
-    return apply_impulses(sys, v, fr, lam), lam
+    springs = spring_rows(fr)
+    if all(sp is None for sp in springs):
+        return apply_impulses(sys, v, fr, lam), lam
+    held = tuple(l if sp is None else jnp.where(sp, 0, l) for l, sp in zip(lam, springs))
+    soft = tuple(jnp.zeros_like(l) if sp is None else jnp.where(sp, l, 0) for l, sp in zip(lam, springs))
+    v = apply_impulses(sys, v, fr, held)
+    dv = apply_impulses(sys, jnp.zeros_like(v), fr, soft)
+    t = spring_share(sys, v, dv)
+    return v + t * dv, tuple(hl + t * sl for hl, sl in zip(held, soft))
 
 
 def refuse_hard_sets(owner, solver: str, model, why: str) -> None:
