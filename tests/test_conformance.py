@@ -10,9 +10,6 @@ CASES = conformance.load()
 
 #: Cells that fail today, each with the reason (docs/conformance.md lists them with their numbers). They are
 #: strict expected failures: a cell here that starts passing fails the suite until it is taken off the list.
-_WARM = ("a compliant row's warm start is scaled by alpha / (alpha + h^2 J M^-1 J^T), so sweeps that do not "
-         "converge leave a stiff spring short of its force and it sags; warm-started in full the stretch is exact, "
-         "but stiff bending hinges then gain energy (docs/constraints.md)")
 _XPBD_ITER = "one XPBD iteration per substep does not converge a stiff spring (docs/solvers.md's iteration table)"
 _PENALTY_CHAIN = ("Penalty's linear contact springs carry a hit through touching balls as a wave, so the impulse "
                   "spreads over the row; PGS, Direct, XPBD, SoftStep and RATTLE pass")
@@ -29,12 +26,6 @@ _SOFT_PUSH = ("a start overlap is a compressed contact spring (Penalty) or a sof
 _POSITION_PUSH = ("a start overlap projected out at position level becomes a velocity through v = (p - x) / h; "
                   "RATTLE passes")
 OPEN = {
-    ("compliant static stretch", "PGS"): _WARM,
-    ("compliant static stretch", "Jacobi"): _WARM,
-    ("compliant static stretch", "SoftStep"): _WARM,
-    ("bending cantilever at rest", "PGS"): _WARM,
-    ("bending cantilever at rest", "Jacobi"): _WARM,
-    ("bending cantilever at rest", "SoftStep"): _WARM,
     ("bending cantilever at rest", "XPBD"): _XPBD_ITER,
     ("newton's cradle", "Penalty"): _PENALTY_CHAIN,
     ("newton's cradle, two balls in", "Penalty"): _PENALTY_CHAIN,
