@@ -86,22 +86,24 @@ def spring_rows(fr: tuple) -> tuple:
 
 
 def spring_share(sys: System, v, dv):
-    """The share t in [0, 1] of the compliant rows' warm-start velocity change `dv` to apply to `v`: all of it
-    unless it would raise the kinetic energy, else the largest share that does not, t = -2 v.M dv / dv.M dv
-    (K(v + t dv) <= K(v)). One share per model (per copy of a batch-minor model). At rest under a load the
-    warm start removes the load's velocity, so t = 1 there: the last impulses are kept in full and the static
-    stretch is alpha times the force for any number of sweeps (docs/constraints.md, compliant warm start)."""
+    """The share t in [0, 1] of the compliant rows' warm-start velocity change `dv` to apply to `v`: the one that
+    leaves the least kinetic energy, t = -v.M dv / dv.M dv (a line search along the warm start), capped at the
+    whole. One share per model (per copy of a batch-minor model). At rest under a load the warm start removes the
+    load's velocity exactly, so t = 1 there: the last impulses are kept in full and the static stretch is alpha
+    times the force for any number of sweeps. A share that would raise the kinetic energy is never taken, so the
+    last step's impulses, which sweeps that do not converge leave lagging behind a stiff spring's motion, are not
+    fed back into it (docs/constraints.md, compliant rows and the warm start)."""
     m = L.safe_reciprocal(sys.w)
     axes = tuple(range(v.ndim - 1)) if sys.topology.batch is not None else None
     a = jnp.sum(m * v * dv, axis=axes)
     b = jnp.sum(m * dv * dv, axis=axes)
-    return jnp.where(b > 0, jnp.clip(-2 * a * L.safe_reciprocal(b), 0, 1), 1)
+    return jnp.where(b > 0, jnp.clip(-a * L.safe_reciprocal(b), 0, 1), 1)
 
 
 def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, h, factor=1.0, gradient: bool = True):
     """Apply `factor` times the previous impulses (ropes clamped, undefined constraints dropped) to `v`; a
-    constraint set's compliant rows together, by the share `spring_share` of theirs that does not raise the
-    kinetic energy. Returns (v, lam): the velocities after the warm start and the accumulated impulses to
+    constraint set's compliant rows together, by the share of theirs that leaves the least kinetic energy
+    (`spring_share`). Returns (v, lam): the velocities after the warm start and the accumulated impulses to
     iterate from. (`h` is the (sub)step, unused.)"""
     del h
     if not gradient:
