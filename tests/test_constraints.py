@@ -142,8 +142,8 @@ def test_compliant_bending_arm_stays_at_the_minimum_of_its_potential(solver):
 
 
 # The bent cloth's solvers and, per solver, its rods' largest stretch with bending (measured: PGS 0.023, SoftStep
-# 0.027, Jacobi 0.27, XPBD 0.0085; with stiff compliant rows warm-started in full, before `common.warm_rows`: PGS
-# 2.9, SoftStep 114). Jacobi without warm start and with substeps: warm-started, its rods' own warm start and
+# 0.025, Jacobi 0.27, XPBD 0.0085; with the compliant rows warm-started in full, not by `common.spring_share`:
+# PGS 2.9, SoftStep 127). Jacobi without warm start and with substeps: warm-started, its rods' own warm start and
 # Baumgarte bias still gain energy on this cloth (Jacobi(20): 3.9 J in 2 s, 420 J in 8 s), as PGS's long chains do.
 BENT = [(jc.PGS(20), 0.05), (jc.SoftStep(), 0.05), (jc.Jacobi(20, substeps=4, warm_start=False), 0.4),
         (jc.XPBD(), 0.02)]

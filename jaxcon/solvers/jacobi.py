@@ -64,8 +64,8 @@ class Jacobi(Solver):
       relaxation: scale of the summed impulse in (0, 2], a differentiable leaf; None: 1 / (largest number of
         constraints at one particle, a hub's star counting once) of the model being solved, or mass splitting for a model with contacts
         (a fixed value there scales every rod and contact row alike).
-      warm_start: start from the previous step's impulses (static); a constraint set's compliant rows from a
-        share of theirs, none where the spring is stiff for the step (`common.warm_rows`).
+      warm_start: start from the previous step's impulses (static); a constraint set's compliant rows from the
+        share of theirs that leaves the least kinetic energy, all of it at rest (`common.spring_share`).
       substeps: (sub)steps per step, static, >= 1.
       stabilization: 'baumgarte' (default) or 'split' (static): split impulses as in `PGS`, the position
         projection by Jacobi sweeps with the rods' relaxation (1 / largest degree by default).

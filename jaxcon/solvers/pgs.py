@@ -45,7 +45,8 @@ class PGS(Solver):
       beta: Baumgarte factor in [0, 1], a differentiable leaf (0.1 to 0.3 is usual); with split impulses only
         the contacts' push-out rate.
       warm_start: start each step from the previous step's impulses (static); a constraint set's compliant rows
-        from a share of theirs, none where the spring is stiff for the step (`common.warm_rows`).
+        from the share of theirs that leaves the least kinetic energy, all of it at rest
+        (`common.spring_share`).
       substeps: (sub)steps per step, static, >= 1.
       warm_start_factor: scale in [0, 1] of the warm-start impulses, a differentiable leaf. 1 is the textbook
         method. With few iterations on long chains, full warm starting plus the Baumgarte bias feeds the

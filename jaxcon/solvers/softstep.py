@@ -32,7 +32,7 @@ def soft_coefficients(hertz, damping_ratio, h):
 def _sweep(topo, v, lam, fr, bias, mass_scale, impulse_scale, inv_h, spring=True):
     """One Gauss-Seidel sweep over the constraint colours with soft (or, mass_scale 1 and impulse_scale 0,
     rigid) rows; a slack rope (or unilateral row) is speculative and rigid. A constraint set's compliant rows
-    are their own springs instead (`rows.solve`, bias C / h; warm-started by `common.warm_rows`;
+    are their own springs instead (`rows.solve`, bias C / h; warm-started by `common.spring_share`;
     untouched by the relax sweeps), so a compliance means the same potential energy as in every other solver.
     Returns (v, lam)."""
     def colour(v, blk, rows):
@@ -62,8 +62,8 @@ class SoftStep(Solver):
     """Soft step (Box2D v3): per substep of length h = dt / substeps,
 
       1. integrate velocities: v += h g;
-      2. warm start: apply the previous substep's impulses (a constraint set's compliant rows': a share,
-         `common.warm_rows`);
+      2. warm start: apply the previous substep's impulses (a constraint set's compliant rows': the share that
+         leaves the least kinetic energy, `common.spring_share`);
       3. solve, one sweep over the colours with soft constraints:
            dlam = mass_scale (n . (v_j - v_i) + bias_rate C) / (w_i + w_j) - impulse_scale lam
          (coefficients from `soft_coefficients(hertz, damping_ratio, h)`);
