@@ -100,11 +100,12 @@ def spring_share(sys: System, v, dv):
     return jnp.where(b > 0, jnp.clip(-a * L.safe_reciprocal(b), 0, 1), 1)
 
 
-def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, h, factor=1.0, gradient: bool = True):
-    """Apply `factor` times the previous impulses (ropes clamped, undefined constraints dropped) to `v`; a
-    constraint set's compliant rows together, by the share of theirs that leaves the least kinetic energy
-    (`spring_share`). Returns (v, lam): the velocities after the warm start and the accumulated impulses to
-    iterate from. (`h` is the (sub)step, unused.)"""
+def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, h, factor=1.0, gradient: bool = True, others=None):
+    """Apply `factor` times the previous impulses (ropes clamped, undefined constraints dropped) to `v`; then
+    `others(v) -> (v, extra)` (the contacts' warm start, or None); last a constraint set's compliant rows
+    together, by the share of theirs that leaves the least kinetic energy after everything else's warm start
+    (`spring_share`). Returns (v, lam, extra): the velocities after the warm start, the accumulated impulses to
+    iterate from and what `others` returned (None without it). (`h` is the (sub)step, unused.)"""
     del h
     if not gradient:
         lam_ws = lax.stop_gradient(lam_ws)
@@ -113,14 +114,15 @@ def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, h, factor=1.0, gradient
     lam = tuple(R.clamp(blk, l) * (f.k > 0).astype(f.k.dtype)
                 for blk, f, l in zip(sys.topology.blocks, fr, lam_ws))
     springs = spring_rows(fr)
-    if all(sp is None for sp in springs):
-        return apply_impulses(sys, v, fr, lam), lam
     held = tuple(l if sp is None else jnp.where(sp, 0, l) for l, sp in zip(lam, springs))
-    soft = tuple(jnp.zeros_like(l) if sp is None else jnp.where(sp, l, 0) for l, sp in zip(lam, springs))
     v = apply_impulses(sys, v, fr, held)
+    v, extra = (v, None) if others is None else others(v)
+    if all(sp is None for sp in springs):
+        return v, lam, extra
+    soft = tuple(jnp.zeros_like(l) if sp is None else jnp.where(sp, l, 0) for l, sp in zip(lam, springs))
     dv = apply_impulses(sys, jnp.zeros_like(v), fr, soft)
     t = spring_share(sys, v, dv)
-    return v + t * dv, tuple(hl + t * sl for hl, sl in zip(held, soft))
+    return v + t * dv, tuple(hl + t * sl for hl, sl in zip(held, soft)), extra
 
 
 def refuse_hard_sets(owner, solver: str, model, why: str) -> None:
@@ -520,10 +522,10 @@ def step_begin(sys, x, v, lam_ws, beta, h, split, warm: bool, factor=1.0, gradie
         if cs is not None:
             imp = zero_impulses(topo, cs.ct, x.dtype)
     else:
-        v, lam = warm_start(sys, v, fr, lam_ws, h, factor, gradient)
-        if cs is not None:
-            v, imp = contact.warm_start(cs, sys.w, v, obs, pairs, imp_ws if gradient else lax.stop_gradient(imp_ws),
-                                        factor)
+        others = None if cs is None else functools.partial(
+            contact.warm_start, cs, sys.w, obs=obs, pairs=pairs,
+            prev=imp_ws if gradient else lax.stop_gradient(imp_ws), factor=factor)
+        v, lam, imp = warm_start(sys, v, fr, lam_ws, h, factor, gradient, others)
     if cs is not None:
         imp = with_found(imp, found)
     return Begin(v_free, v, fr, bias, obs, pairs, lam, imp, slop)
