@@ -255,9 +255,10 @@ class Diagnosis(NamedTuple):
       diverged:    bool, some step is bad.
       first_bad:   int, index of the first bad step, or -1.
       penetration: [steps] deepest contact overlap (m) of each step (``jc.penetration``); 0 without contacts.
-      overflow:    [steps] int, candidate pairs the neighbour grid had no room for (Trajectory.contact_overflow;
-                   0 for models without a grid). > 0 means contacts may have been missed in that step: build
-                   the model with a larger `max_neighbours`. Not counted as bad (it is not a divergence).
+      overflow:    [steps] int, candidate pairs the neighbour grid had no room for, or that its last search of
+                   the step still found unsolved (Trajectory.contact_overflow; 0 for models without a grid).
+                   > 0 means contacts may have been missed in that step: build the model with a larger
+                   `max_neighbours`, or take a smaller `dt`. Not counted as bad (it is not a divergence).
       overflowed:  bool, some step has overflow > 0.
     """
 
@@ -313,9 +314,10 @@ def diagnose(model: Model, traj: Trajectory, state0: Optional[State] = None) -> 
     if grid and known is not None and np.any(np.asarray(known) > 0):
         k = int(np.argmax(np.asarray(known) > 0))
         warnings.warn(f"diagnose: the neighbour grid ran out of room in {int(np.sum(np.asarray(known) > 0))} "
-                      f"step(s), first at step {k} ({int(np.asarray(known)[k])} candidate pairs without a slot): "
-                      f"contacts may have been missed. Build the model with a larger `max_neighbours` (now "
-                      f"{model.contact.grid_k})", stacklevel=2)
+                      f"step(s), first at step {k} ({int(np.asarray(known)[k])} candidate pairs without a slot or still unsolved after "
+                      f"the step's searches): contacts may have been missed. Build the model with a larger "
+                      f"`max_neighbours` (now {model.contact.grid_k}), or take a smaller `dt` where bodies cross "
+                      f"several others in one step", stacklevel=2)
     return d
 
 

@@ -139,8 +139,10 @@ class RATTLE(Solver):
         x, v, mu, imp = _sweeps(shake_contacts, carry, self.iterations, unroll, lambda a, b: _moved(a[0], b[0]), bound)
 
         fr1 = frames(sys, x)
-        springs = tuple(R.gamma(f, h / math.sqrt(2)) for f in fr1)     # a set's rows: alpha / (h^2 / 2)
+        springs = tuple(_trapezoid(f, h) for f in fr1)
         v = sys.apply_gravity(v, h / 2)
+        kick = tuple(_start_force(blk, f, h) for blk, f in zip(topo.blocks, fr0))
+        v = apply_impulses(sys, v, fr0, kick)
 
         def project_colour(v, blk, rows):
             f, r, mu, lam, spring = rows
@@ -181,13 +183,47 @@ class RATTLE(Solver):
         v = apply_impulses(sys, v, fr1, lam2)       # warm started with the position stage's impulses
         v, lam2 = _sweeps(project, (v, lam2), self.iterations, written,
                           lambda a, b: h * _moved(a[0], b[0]), bound)
-        lam = tuple(map(operator.add, (m / h for m in mu), lam2))
+        lam = tuple(m / h + l2 + e for m, l2, e in zip(mu, lam2, kick))
         if cs is None:
             return x, v, lam
         v_free = sys.apply_gravity(v_approach, h / 2)
         v, imp = _contact_velocities(sys, x, v_approach, v_free, v, imp, h, partners, self.iterations, bound)
         return x, v, with_contacts(sys, lam, with_found(imp, found))
 
+
+
+def _trapezoid(f, h):
+    """A set's compliant rows' spring in the velocity stage (`rows.Spring`), None for rods and ropes.
+
+    With g = alpha / (h^2 / 2) (the position stage's implicit spring at velocity level) and s = J M^-1 J^T, a row
+    takes the share theta = (s / (s + g))^2 of its half kick implicitly at the step's end, and 1 - theta
+    explicitly from the start (`_start_force`): lam = theta lam_end, where lam_end = (rel + C / h) / g is the
+    implicit row's force at the velocities the stage ends with; that is the implicit row with g' = g / theta.
+    A soft spring (h omega small, theta -> 0) gets the trapezoidal rule on the velocities: with the position
+    stage, x' - 2 x + x_prev = h^2 (a' + a_prev) / 2, second order and without damping. A stiff one
+    (theta -> 1) gets the implicit row, stable at any stiffness. At rest C = alpha T either way. The square
+    keeps the damping small up to h omega = 0.13 (docs/solvers.md)."""
+    g = R.gamma(f, h / math.sqrt(2))
+    if g is None:
+        return None
+    s = jnp.where(f.k > 0, f.s, 1)
+    theta = (s / (s + g.g)) ** 2
+    ge = g.g / theta
+    return R.Spring(ge, L.safe_reciprocal(f.s + ge) * (f.k > 0).astype(ge.dtype))
+
+
+def _start_force(blk, f, h):
+    """The explicit share of a set's compliant rows' second half kick, from the step's start (frames `f`):
+    (1 - theta) (h / 2) C / alpha = C (2 s + g) / (h (s + g)^2), g = alpha / (h^2 / 2) (`_trapezoid`), bounded
+    as alpha -> 0.
+    Zero for hard rows, rods and ropes, and for a unilateral row pushing."""
+    a = R.compliant(f)
+    if a is None:
+        return jnp.zeros_like(f.C)
+    g = a / (h * h / 2)
+    s = jnp.where(f.k > 0, f.s, 1)
+    e = jnp.where((a > 0) & (f.k > 0), f.C * (2 * s + g) / (h * (s + g) ** 2), 0)
+    return R.clamp(blk, e)
 
 
 def default_tolerance(dtype) -> float:
