@@ -81,7 +81,7 @@ def _with_selection(monkeypatch, mode):
     fallback)."""
     from jaxcon.core import contact_rows
     monkeypatch.setattr(contact_rows, "SELECT_FROM", 10 ** 9 if mode == "off" else _SMALL_BOX // 2)
-    elif mode == "none":
+    if mode == "none":
         real = contact_rows.select_obstacles
 
         def nothing(obs, vf, h):

@@ -58,10 +58,11 @@ class RATTLE(Solver):
 
     A constraint set's compliant rows (compliance alpha > 0, potential C^2 / (2 alpha)) are implicit springs, as
     XPBD's: SHAKE solves C_lib(x') = a mu with a = alpha / (h^2 / 2) (mu / h is half the step's impulse, so at
-    rest C = alpha T), and the velocity stage C_lib(x') + h rel(v) = a' lam2 with a' = alpha / (h^2 / 2) at
-    velocity level (`rows.solve`, `rows.gamma`): a spring the step does not resolve is damped rather than
-    unstable, alpha -> 0 is the hard row, and a static spring rests at alpha T with v = 0. The springs are first
-    order in h (implicit Euler, as XPBD's); hard rows keep RATTLE's second order.
+    rest C = alpha T). The velocity stage's half kick is split (`_trapezoid`, `_start_force`): a spring the
+    step resolves (h omega small) takes it from the step's start, explicitly, which with the position stage is
+    the trapezoidal rule, second order and undamped; a spring it does not resolve takes it implicitly at the
+    end, C_lib(x') + h rel(v) = a' lam2, damped rather than unstable; alpha -> 0 is the hard row, and a static
+    spring rests at alpha T with v = 0 for any alpha.
 
     Sweeps: Gauss-Seidel, up to `iterations` per stage, stopping once a sweep moves no coordinate by more than
     `tolerance` times the model's extent (position stage; velocity stage: h times the velocity change), checked
