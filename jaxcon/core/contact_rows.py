@@ -126,17 +126,43 @@ def direction(d):
     return dist, jnp.where(dist > 0, n, up)
 
 
-def overlap_normal(d0, d, R):
-    """(unit normal, gap) of contacts at distance vectors d [dim, ...] (touching at |d| = R) for a position
-    level solver (XPBD) whose contacts also had d0 at the start of the substep: the normal of d
-    (`direction`), except for a contact that already overlapped at the start (a particle started inside a
-    sphere or another particle), which keeps the start's normal and the gap along it, n0 . d - R, so that it
-    leaves by the nearest surface of where it was (upwards from the exact centre), not by the side that
-    gravity's prediction happened to move it towards."""
+def overlap_normal(d0, disp, R, ahead=None):
+    """(unit normal, gap, floor) of contacts at distance vectors d0 [dim, ...] at the start of a position-level
+    substep (XPBD, RATTLE; touching at |d| = R), displaced by `disp` since (d = d0 + disp, `disp`
+    kept apart so that it stays in full precision: `contact.position_pass`).
+
+    The normal is that of d (`direction`), except
+    * for a contact that already overlapped at the start (a particle started inside a sphere or another
+      particle), which keeps the start's normal and the gap along it, n0 . d - R, so that it leaves by the
+      nearest surface of where it was (upwards from the exact centre), not by the side that gravity's
+      prediction happened to move it towards;
+    * for a contact separated at the start whose straight path over the substep's predicted displacement
+      `ahead` (the free one, h v; default `disp`) passes the other body, coming out again or ending beyond its
+      centre (`_swept`, the speculative contact of the velocity rows, at position level): the normal at that
+      time of impact, with the gap along it. A particle that moves further than the other body's size in one
+      substep is stopped at the surface it hit, instead of being projected out of the side it ended nearest.
+      Decided on the prediction, not on the current displacement, so that the row keeps one normal through
+      the sweeps of a substep (with the current one it switched between the two normals from sweep to sweep,
+      and RATTLE's break at dt 1/60 ended with balls 23% of a diameter into each other).
+
+    `floor` (<= 0): the gap the contact is projected onto, min(C0, 0) with C0 the start's gap: the position pass
+    keeps an overlap from getting deeper but does not push it out (that would become velocity, v = dp / h);
+    `solvers.contact.push_out` does, at position level, at most PUSH_OUT_SPEED h per substep."""
     dist0, n0 = direction(d0)
+    tol = tolerance(magnitude(d0) + R)
+    C0 = dist0 - R
+    deep = C0 < -tol
+    ahead = disp if ahead is None else ahead
+    n_hit, _, _, hit, _, _ = _swept(d0, ahead, R, 1.0, tol)
+    end = d0 + ahead
+    # the path passed the other body: out again, or beyond its centre (projecting along the end's own normal
+    # would push it out of the far side)
+    hit = hit & ((dot(end, end) > R * R) | (dot(n_hit, end) < 0))
+    d = d0 + disp
     dist, n = direction(d)
-    deep = dist0 - R < -tolerance(magnitude(d0) + R)
-    return jnp.where(deep, n0, n), jnp.where(deep, dot(n0, d), dist) - R
+    fixed = deep | hit
+    n = jnp.where(fixed, jnp.where(deep, n0, n_hit), n)
+    return n, jnp.where(fixed, dot(n, d), dist) - R, jnp.minimum(C0, 0)
 
 
 def pair_slots(ct: ContactTopology, n: int, partners=None):
@@ -718,6 +744,45 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None, slop=0.0):
     return obs, pairs
 
 
+#: How deep a speculative row (`speculative_rows`) lets a contact go, as a fraction of its contact distance.
+SPECULATIVE_DEPTH = 0.5
+
+
+def speculative_rows(cs: ContactSystem, w, x, v, h, partners=None, depth=SPECULATIVE_DEPTH):
+    """Speculative rows for a solver whose contacts are springs (Penalty): (obstacle Rows or None, pair Rows or
+    None) whose target vn' >= -max(C_n + depth R, 0) / h lets each contact close its gap and go at most `depth`
+    of its contact distance R deep within the (sub)step, never further, along the normal at the time of impact
+    of the straight paths at the velocities `v` (`_swept`, as the velocity rows' speculative contacts; C_n the
+    gap along it). A contact already that deep gets the target 0: it goes no deeper, and its spring pushes it out.
+    Spheres and pairs only (a plane is a half-space: nothing passes it); no restitution, no friction (the
+    spring's). A spring contact stopped this way loses the approach speed the row takes; a contact the spring
+    holds within `depth` on its own is untouched."""
+    ct, dim = cs.ct, x.shape[0]
+    obs = pairs = None
+    if ct.n_spheres:
+        geo = _obstacle_geometry(cs, x, v, h)
+        n, C_n = geo[0], geo[2]
+        r = cs.radius[0]
+        reach = jnp.stack([jnp.zeros_like(r)] * ct.n_planes + [cs.sphere_radius[s] + r for s in range(ct.n_spheres)])
+        winv = jnp.broadcast_to(w[0], C_n.shape)
+        sphere = (jnp.arange(ct.n_obstacles) >= ct.n_planes).reshape((-1,) + (1,) * (C_n.ndim - 1))
+        k = L.safe_reciprocal(winv) * sphere.astype(winv.dtype)
+        obs = Rows(n, -jnp.maximum(C_n + depth * reach, 0) / h, k, winv, jnp.zeros_like(C_n), C_n)
+    if ct.n_pairs or ct.has_grid:
+        xf, vf, wf = x.reshape(dim, -1), v.reshape(dim, -1), w.reshape(-1)
+        ia, ja, valid, _ = pair_slots(ct, xf.shape[1], partners)
+        R = cs.radius_flat[ia] + cs.radius_flat[ja]
+        xi, xj = xf[:, ia], xf[:, ja]
+        geo = _swept(xj - xi, vf[:, ja] - vf[:, ia], R, h, tolerance(magnitude(xi) + magnitude(xj) + R))
+        n, C_n = geo[0], geo[2]
+        winv = wf[ia] + wf[ja]
+        k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype)
+        pairs = Rows(n, -jnp.maximum(C_n + depth * R, 0) / h, k, winv, jnp.zeros_like(C_n), C_n)
+        if partners is not None:
+            pairs = pairs._replace(i=ia, j=partners)
+    return obs, pairs
+
+
 #: Models of at least this many particles sweep an obstacle's rows only where a particle is within reach of it
 #: (`select_obstacles`, `solvers.contact.sweep`): the 1024-disc box has 3072 plane rows, of which about 100 touch.
 SELECT_FROM = 256
@@ -773,10 +838,8 @@ def pair_total(ct, w, P, sign_i, index=None, partners=None):  # noqa: D401
 
 
 # ---- rows at position level (XPBD, Penalty) and of XPBD's velocity pass ---------------------------------
-def obstacle_gap(cs: ContactSystem, q: int, p, x=None):
-    """(unit normal [dim, *view], gap [*view]) of every particle at `p` against obstacle q (planes first).
-    With the substep's start positions `x`, a particle that started inside a sphere keeps the normal it had
-    there (`overlap_normal`)."""
+def obstacle_gap(cs: ContactSystem, q: int, p):
+    """(unit normal [dim, *view], gap [*view]) of every particle at `p` against obstacle q (planes first)."""
     dim, nview = p.shape[0], p.ndim - 1
     r = cs.radius[0]
     if q < cs.ct.n_planes:
@@ -784,10 +847,23 @@ def obstacle_gap(cs: ContactSystem, q: int, p, x=None):
         return nrm, dot(nrm, p) - cs.plane_offset[q] - r
     s = q - cs.ct.n_planes
     c = cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
-    if x is not None:
-        return overlap_normal(x - c, p - c, cs.sphere_radius[s] + r)
     dist, nrm = direction(p - c)
     return nrm, dist - cs.sphere_radius[s] - r
+
+
+def obstacle_moved_gap(cs: ContactSystem, q: int, x, dp, ahead=None):
+    """(unit normal, gap, floor) of every particle against obstacle q at positions x + dp, x the start of a
+    position-level substep and dp the displacement since (`overlap_normal`, with the predicted one `ahead`; a plane's normal is
+    its own). The gap is computed as (gap at x) + n . dp, so a displacement below an ulp of x still counts."""
+    dim, nview = x.shape[0], x.ndim - 1
+    r = cs.radius[0]
+    if q < cs.ct.n_planes:
+        nrm = jnp.broadcast_to(cs.plane_normal[q].reshape((dim,) + (1,) * nview), x.shape)
+        C0 = dot(nrm, x) - cs.plane_offset[q] - r
+        return nrm, C0 + dot(nrm, dp), jnp.minimum(C0, 0)
+    s = q - cs.ct.n_planes
+    c = cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
+    return overlap_normal(x - c, dp, cs.sphere_radius[s] + r, ahead)
 
 
 def obstacle_size(cs: ContactSystem, q: int):

@@ -19,8 +19,9 @@ from jax import lax
 
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
-from jaxcon.core.contact import ContactSystem, Impulses
+from jaxcon.core.contact import ContactSystem, Impulses, zero_impulses
 from jaxcon.core.contact_rows import (
+    PUSH_OUT_SPEED,
     UNILATERAL,
     ObstacleBlock,
     ObstacleColour,
@@ -30,6 +31,7 @@ from jaxcon.core.contact_rows import (
     is_in_solve,
     length as _length,
     obstacle_gap,
+    obstacle_moved_gap,
     overlap_normal,
     pair_block,
     pair_index,
@@ -37,6 +39,7 @@ from jaxcon.core.contact_rows import (
     pair_total,
     phase_target,
     slot_rows,
+    speculative_rows as contact_rows_speculative,
     velocity_rows,
 )
 
@@ -415,7 +418,8 @@ def impact_times(cs: ContactSystem, obs: Rows, pairs: Rows, imp: Impulses, shape
 OVERLAP_PASSES = 8
 
 
-def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pairs: Optional[Rows] = None, slop=0.0):
+def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pairs: Optional[Rows] = None, slop=0.0,
+                     cap=None, partners=None):
     """Move overlapping contacts apart at position level (non-linear Gauss-Seidel, as Box2D v2's position
     solver), `passes` times (default: `OVERLAP_PASSES` with pairs, `GRID_OVERLAP_PASSES` with a grid, else 1):
     pair rounds, then obstacles (which cannot move, so they have the last word; a heavy ball on light ones
@@ -424,7 +428,9 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
     overlap (an under-converged cluster, or the time-of-impact correction of a particle whose velocity was
     also changed by a later contact). A grid model's pairs (the rows `pairs` of this step) are projected
     slot by slot instead (the overlaps of one slot together, each split between the overlaps at its particles).
-    `slop`: the overlaps are projected onto `slop` times the contact distance, not onto 0 (`CONTACT_SLOP`)."""
+    `slop`: the overlaps are projected onto `slop` times the contact distance, not onto 0 (`CONTACT_SLOP`).
+    `cap` (m): a pass moves each contact out by at most this much (`push_out`). `partners` [n, K]: a grid
+    model's pairs where there are no `pairs` rows (`push_out`)."""
     ct = cs.ct
     dim, shape = x.shape[0], x.shape
     r = cs.radius[0]
@@ -433,7 +439,7 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
     def obstacles(x):
         for q in range(ct.n_obstacles):          # planes, then spheres
             n, C = obstacle_gap(cs, q, x)
-            x = x + n * (jnp.maximum(-C - slop * r, 0) * (k > 0))
+            x = x + n * (_capped(jnp.maximum(-C - slop * r, 0), cap) * (k > 0))
         return x
 
     def pairs_pass(x):           # round by round, or slot by slot (mass splitting over a slot's overlaps)
@@ -441,7 +447,7 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
 
         def colour(xf, c, rows):
             dist, n = direction(c.rel(xf))
-            over = jnp.maximum((1 - slop) * c.both(rf) - dist, 0)
+            over = _capped(jnp.maximum((1 - slop) * c.both(rf) - dist, 0), cap)
             if c.split:
                 over = over * (rows[0] > 0)
                 P = L.computed_once(lambda n, over, k: n * (over * k),
@@ -454,6 +460,8 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
 
     if pair_partners(pairs) is not None:          # a grid's slots, read by every pass: moved once
         block, kk = slot_rows(pairs.j, pairs.k, pairs.slots)
+    elif partners is not None:
+        block, kk = slot_rows(partners, (partners >= 0).astype(x.dtype))
     else:
         block, kk = pair_block(ct), None
 
@@ -480,6 +488,31 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
         return lax.cond(carry[1], run, lambda x: (x, carry[1]), carry[0])
 
     return lax.fori_loop(0, passes, gated, (x, jnp.ones((), bool)))[0]
+
+
+def speculative_pass(topo, cs: ContactSystem, w, x, v, h, partners=None):
+    """One Gauss-Seidel pass of `contact_rows.speculative_rows` on the velocities `v` at the end of a spring
+    solver's (sub)step of length h from positions `x` (Penalty): no contact passes more than half its contact
+    distance into a sphere or another particle, however fast (a particle that would otherwise move through a
+    wall of discs or a sphere within one substep). Returns (v, the rows' normal `Impulses`)."""
+    obs, pairs = contact_rows_speculative(cs, w, x, v, h, partners)
+    zero = zero_impulses(topo, cs.ct, x.dtype)
+    if obs is None and pairs is None:
+        return v, zero
+    return sweep(cs.replace(friction=jnp.zeros_like(cs.friction)), w, v, obs, pairs, zero)
+
+
+def _capped(a, cap):
+    return a if cap is None else jnp.minimum(a, cap)
+
+
+def push_out(cs: ContactSystem, w, x, h, partners=None):
+    """The start overlaps of a position-level (sub)step of length h (XPBD, RATTLE) pushed out at position level,
+    each contact by at most `contact_rows.PUSH_OUT_SPEED` h, with no change of velocity (one pass of
+    `project_overlaps`; a grid model's `partners` [n, K]). The position pass then only keeps each contact from
+    getting deeper than it starts (`contact_rows.overlap_normal`'s floor), so an overlap is pushed out at no
+    more than PUSH_OUT_SPEED and never becomes velocity (v = dp / h would make it so)."""
+    return project_overlaps(cs, w, x, 1, None, 0.0, PUSH_OUT_SPEED * h, partners)
 
 
 # ---- contacts at position level (XPBD, Penalty) ------------------------------------------------------------
@@ -509,11 +542,13 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
 # The substep's reported impulses (N s) are the velocity pass's totals: lam / h plus the velocity rows.
 
 
-def _position_row(disp, n, C, k, mu, ln, lt):
-    """One contact at position level: normal multiplier (accumulated, >= 0), then static friction. `disp` is
-    the second body's displacement over the substep relative to the first, k = 1 / (w_i + w_j) (0: no row).
-    Returns (position impulse change P [dim, ...] on the second body, new lam_n, new lam_t)."""
-    new_n = R.accumulate(UNILATERAL, ln, -C * k)        # the row update of every kind, at position level
+def _position_row(disp, n, C, floor, k, mu, ln, lt):
+    """One contact at position level: normal multiplier (accumulated, >= 0) projecting the gap C onto `floor`
+    (0, or what is left of a start overlap after this substep's push-out, `contact_rows.overlap_normal`), then
+    static friction. `disp` is the second body's displacement over the substep relative to the first,
+    k = 1 / (w_i + w_j) (0: no row). Returns (position impulse change P [dim, ...] on the second body, new lam_n,
+    new lam_t)."""
+    new_n = R.accumulate(UNILATERAL, ln, (floor - C) * k)        # the row update of every kind, at position level
     disp_t = disp - n * _dot(disp, n)
     stick = lt - disp_t * k
     limit = mu * new_n
@@ -524,44 +559,49 @@ def _position_row(disp, n, C, k, mu, ln, lt):
     return n * (new_n - ln) + (new_t - lt), new_n, new_t
 
 
-def position_pass(cs: ContactSystem, w, x, p, imp: Impulses, partners=None):
+def position_pass(cs: ContactSystem, w, x, dp, imp: Impulses, partners=None, ahead=None):
     """One position-level pass over every contact (the section's comment above): obstacles, then the pairs, each
     block colour by colour (`layout.each_colour`: round by round, or a grid model's `partners` [n, K] slot by
     slot, where the rows of one slot, whose particles may repeat, are relaxed by mass splitting over those that
-    push or overlap). x: positions at the start of the substep, p: current positions [dim, *view]; imp: position
-    multipliers (kg m) accumulated in this substep. Returns (p, imp)."""
+    push or overlap). x: positions at the start of the substep, dp: the displacement since, so
+    that the current positions are x + dp [dim, *view] (kept apart: every gap is computed as the start's plus
+    the displacement's part, `contact_rows.overlap_normal`, which also gives the speculative normal of a contact
+    whose path passes through the other body, and the floor: no contact gets deeper than it starts); imp: position
+    multipliers (kg m) accumulated in this substep; `ahead`: the substep's predicted displacement, which decides
+    the speculative normals (default dp). Returns (dp, imp)."""
     ct, mu = cs.ct, cs.friction
     on, ot = imp.obs_n, imp.obs_t
     if ct.n_obstacles:
         k = L.safe_reciprocal(w[0])
 
-        def obstacle(p, c, lam):
-            n, C = obstacle_gap(cs, c.q, p, x)
-            P, ln, lt = _position_row(p - x, n, C, k, mu, *lam)
-            return p + w * P, (ln, lt)
+        def obstacle(dp, c, lam):
+            n, C, floor = obstacle_moved_gap(cs, c.q, x, dp, ahead)
+            P, ln, lt = _position_row(dp, n, C, floor, k, mu, *lam)
+            return dp + w * P, (ln, lt)
 
-        p, (on, ot) = L.each_colour(ObstacleBlock(ct.n_obstacles), obstacle, p, (on, ot))
+        dp, (on, ot) = L.each_colour(ObstacleBlock(ct.n_obstacles), obstacle, dp, (on, ot))
     pn, pt = imp.pair_n, imp.pair_t
     if ct.n_pairs or ct.has_grid:
-        dim, shape = p.shape[0], p.shape
+        dim, shape = dp.shape[0], dp.shape
         wf, xf, r = w.reshape(-1), x.reshape(dim, -1), cs.radius_flat
+        af = None if ahead is None else ahead.reshape(dim, -1)
 
-        def pair(pf, c, rows):
+        def pair(df, c, rows):
             _, (ln, lt) = rows
-            n, C = overlap_normal(c.rel(xf), c.rel(pf), c.both(r))
-            disp = c.rel(pf - xf)
+            disp = c.rel(df)
+            n, C, floor = overlap_normal(c.rel(xf), disp, c.both(r), None if af is None else c.rel(af))
             if c.split:
-                act = ((c.partner >= 0) & ((C < 0) | (ln > 0))).astype(pf.dtype)
+                act = ((c.partner >= 0) & ((C < floor) | (ln > 0))).astype(df.dtype)
                 k = c.split_mass(wf, act) * act
             else:
                 k = L.safe_reciprocal(c.both(wf)) * c.valid
-            P, ln, lt = L.computed_once(_position_row, (disp, n, C, k, mu, ln, lt),
+            P, ln, lt = L.computed_once(_position_row, (disp, n, C, floor, k, mu, ln, lt),
                                         getattr(c, "partner", None))
-            return c.apply(wf, pf, P), (ln, lt)
+            return c.apply(wf, df, P), (ln, lt)
 
-        pf, (pn, pt) = L.each_colour(pair_block(ct, partners), pair, p.reshape(dim, -1), (None, (pn, pt)))
-        p = pf.reshape(shape)
-    return p, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
+        df, (pn, pt) = L.each_colour(pair_block(ct, partners), pair, dp.reshape(dim, -1), (None, (pn, pt)))
+        dp = df.reshape(shape)
+    return dp, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
 
 def position_velocity_pass(cs: ContactSystem, w, p, v_before, v, imp: Impulses, h, partners=None):

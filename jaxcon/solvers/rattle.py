@@ -90,6 +90,8 @@ class RATTLE(Solver):
         dtype = x.dtype
         tol = jnp.asarray(self.tolerance, dtype)
         tiny = jnp.finfo(dtype).tiny
+        if cs is not None:
+            x = contact.push_out(cs, sys.w, x, h, partners)
         fr0 = frames(sys, x)
         zero = tuple(jnp.zeros_like(f.C) for f in fr0)
 
@@ -105,8 +107,9 @@ class RATTLE(Solver):
             x, v, mu = shake(i, (x, v, mu))
             if cs is None:
                 return x, v, mu, imp
-            p, imp = contact.position_pass(cs, sys.w, x0, x, imp, partners)
-            return p, v + (p - x) / h, mu, imp
+            dp = x - x0
+            moved, imp = contact.position_pass(cs, sys.w, x0, dp, imp, partners, h * v_approach)
+            return x + (moved - dp), v + (moved - dp) / h, mu, imp
 
         carry = (x, v, zero, None if cs is None else zero_impulses(topo, cs.ct, dtype))
         unroll = cs is None and _unroll(self.iterations, topo)      # a sweep with contacts stays a loop

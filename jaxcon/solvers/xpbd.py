@@ -18,15 +18,17 @@ from jaxcon.solvers.common import position_sweep, run_substeps, with_contacts, w
 class XPBD(Solver):
     """Position-level projection of compliant distance constraints, Gauss-Seidel over the colours.
 
-    Per substep of length h = dt / substeps:
+    Per substep of length h = dt / substeps, in displacement form (dp = p - x, the substep's displacement, is
+    what the sweeps carry and update; every constraint and contact reads p_j - p_i as (x_j - x_i) + (dp_j - dp_i),
+    so h v + h^2 g keeps its precision however large x is):
 
-        v += h g;  p = x + h v;  mu = 0
+        v += h g;  dp = h v;  mu = 0
         repeat `iterations` times, colour by colour (constraints of a colour together):
             n = unit(p_j - p_i),  C = |p_j - p_i| - L,  alpha = compliance / h^2
             dmu = (C - alpha mu) / (w_i + w_j + alpha)        (mu > 0: tension, the library's sign)
             mu_new = mu + dmu, clamped to >= 0 for ropes (a rope never pushes)
             p_i += w_i n (mu_new - mu),  p_j -= w_j n (mu_new - mu)
-        v = (p - x) / h;  x = p
+        v = dp / h;  x = x + dp
 
     mu is the position-level multiplier (kg m); the substep's constraint impulse is mu / h (N s), and the
     returned lam is its sum over the substeps, an impulse over dt (a mass m hanging at rest gives
@@ -66,8 +68,9 @@ class XPBD(Solver):
     supports_contacts = True
 
     def _step(self, sys, x, v, lam, dt):
-        """Every substep: the prediction p = x + h (v + h g); `iterations` sweeps, each projecting the
-        constraint colours, then the contacts (`contact.position_pass`); v = (p - x) / h, then with contacts
+        """Every substep: the predicted displacement dp = h (v + h g) (`position_sweep`'s displacement form);
+        `iterations` sweeps, each projecting the
+        constraint colours, then the contacts (`contact.position_pass`); v = dp / h, x + dp, then with contacts
         one velocity pass of restitution and dynamic friction (`contact.position_velocity_pass`). Returns the
         impulses summed over the substeps: the blocks', paired with the contacts' `Impulses` where the model has
         contacts. A grid model's substeps share one search for the whole step (`grid_substepped`)."""
@@ -77,20 +80,25 @@ class XPBD(Solver):
 
         def substep(x, v, _, h, found=None):
             partners = None if found is None else found[0]
-            sweep_colours = position_sweep(sys, sys.rest, compliance / (h * h), set_alpha=lambda a: a / (h * h))
+            if cs is not None:
+                x = contact.push_out(cs, sys.w, x, h, partners)
+            sweep_colours = position_sweep(sys, sys.rest, compliance / (h * h), set_alpha=lambda a: a / (h * h),
+                                           base=x)
             v_before = sys.apply_gravity(v, h)
 
             def sweep(i, c):
-                p, mu, imp = c
-                p, mu = sweep_colours(i, (p, mu))
+                dp, mu, imp = c
+                dp, mu = sweep_colours(i, (dp, mu))
                 if cs is not None:
-                    p, imp = contact.position_pass(cs, sys.w, x, p, imp, partners)
-                return p, mu, imp
+                    dp, imp = contact.position_pass(cs, sys.w, x, dp, imp, partners, ahead)
+                return dp, mu, imp
 
             zero = tuple(jnp.zeros(b.shape, dtype) for b in topo.blocks)
             imp = None if cs is None else zero_impulses(topo, cs.ct, dtype)
-            p, mu, imp = lax.fori_loop(0, self.iterations, sweep, (x + h * v_before, zero, imp), unroll=topo.unroll)
-            v = (p - x) / h
+            ahead = h * v_before
+            dp, mu, imp = lax.fori_loop(0, self.iterations, sweep, (ahead, zero, imp), unroll=topo.unroll)
+            v = dp / h
+            p = x + dp
             if cs is not None:
                 v, imp = contact.position_velocity_pass(cs, sys.w, p, v_before, v, imp, h, partners)
                 imp = with_found(imp, found)
