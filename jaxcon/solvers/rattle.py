@@ -54,7 +54,8 @@ class RATTLE(Solver):
     (a slack rope is free). The returned lam is the constraint impulse over the step (mu / h + the velocity
     stage's impulse; lam > 0: tension; a hanging mass gives m g h). The warm-start input is not used.
 
-    Contacts (`planes`, `spheres`, `collide`) are unilateral rows in both stages, as XPBD's (docs/contacts.md):
+    Contacts (`planes`, `spheres`, `collide`) are unilateral rows in both stages, as XPBD's (docs/contacts.md;
+    the step starts with XPBD's `contact.push_out` of start overlaps):
     every SHAKE sweep ends with the contacts' position pass (`contact.position_pass`: overlaps pushed out along
     the normal with lam_n >= 0, static friction), whose correction / h goes into v' as the constraints' does; the
     velocity stage ends with their velocity pass (`contact.position_velocity_pass`: restitution from the

@@ -41,7 +41,10 @@ class XPBD(Solver):
 
     Contacts (a model with `planes`, `spheres` or `collide`; `contact.position_pass`, Mueller et al.
     2020): in each iteration, after the colours, every contact with gap C(p) < 0 is projected out at position
-    level (rigid, lam_n accumulated >= 0; obstacles for all particles at once, pairs round by round), with
+    level (rigid, lam_n accumulated >= 0; obstacles for all particles at once, pairs round by round; a contact
+    whose predicted path passes the other body keeps the normal at its time of impact, and a start overlap is
+    held, not projected: `contact.push_out` moves it out at the substep's start, at most 3 m/s, with no
+    velocity), with
     *static* friction cancelling the substep's relative tangential displacement while |lam_t| <= mu lam_n.
     After v = (p - x) / h, one velocity pass over the contacts that pushed (lam_n > 0) sets the normal
     relative velocity to -e times its value at the start of the substep after gravity (e = 0 at or below

@@ -9,7 +9,9 @@ import warnings
 
 import numpy as np
 
-import jaxcon as jc
+from jaxcon.core.model import build
+from jaxcon.core.sim import rollout
+from jaxcon.scenes import cloth_edges
 from jaxcon.bench.conformance import CONTACT_SOLVERS, SOLVERS, Outcome, case
 
 G = 9.81
@@ -26,7 +28,7 @@ def _run(model, state, solver_name, dt, steps):
             solver = SOLVERS[solver_name](substeps=need)
     with warnings.catch_warnings():          # Penalty's stability warning: the cell's bound judges the run
         warnings.simplefilter("ignore", RuntimeWarning)
-        return jc.rollout(model, state, solver, dt, steps)
+        return rollout(model, state, solver, dt, steps)
 
 
 def _grid(n, spacing):
@@ -42,8 +44,8 @@ def _grid(n, spacing):
 def free_fall(solver_name: str, full: bool) -> Outcome:
     n, steps, dt = (16 if full else 6), 120, 1 / 240
     x = np.concatenate([_grid(n, 1 / (n - 1)), np.full((n * n, 1), 10.0)], 1)
-    edges, _ = jc.scenes.cloth_edges(n, n)
-    model, state = jc.build(x, 1.0 / (n * n), rods=[tuple(e) for e in np.asarray(edges)], dtype=np.float32)
+    edges, _ = cloth_edges(n, n)
+    model, state = build(x, 1.0 / (n * n), rods=[tuple(e) for e in np.asarray(edges)], dtype=np.float32)
     final, _ = _run(model, state, solver_name, dt, steps)
     drop = 10.0 - float(np.mean(np.asarray(final.x, np.float64)[:, 2]))
     err = drop / (0.5 * G * (steps * dt) ** 2) - 1
@@ -62,7 +64,7 @@ def small_forces(solver_name: str, full: bool) -> Outcome:
     t = steps * dt
     drops = []
     for f in (0.49, 0.50, 0.51):
-        model, state = jc.build(np.array([[3.0, 4.0], [4.0, 4.0]]), 1.0, rods=[(0, 1)], gravity=np.array([0.0, -f]),
+        model, state = build(np.array([[3.0, 4.0], [4.0, 4.0]]), 1.0, rods=[(0, 1)], gravity=np.array([0.0, -f]),
                                 dtype=np.float32)
         final, _ = _run(model, state, solver_name, dt, steps)
         drops.append(4.0 - float(np.mean(np.asarray(final.x, np.float64)[:, 1])))
@@ -76,7 +78,7 @@ def small_forces(solver_name: str, full: bool) -> Outcome:
 def _incline(solver_name, ratio, steps, mu=0.5, r=0.05, dt=1 / 240):
     th = np.arctan(ratio * mu)
     n, down = np.array([-np.sin(th), 0, np.cos(th)]), np.array([-np.cos(th), 0, -np.sin(th)])
-    model, state = jc.build((r * n)[None], [1.0], radius=r, planes=[(n, 0.0)], friction=mu, dtype=np.float32)
+    model, state = build((r * n)[None], [1.0], radius=r, planes=[(n, 0.0)], friction=mu, dtype=np.float32)
     _, traj = _run(model, state, solver_name, dt, steps)
     s = (np.asarray(traj.x[:, 0], np.float64) - r * n) @ down
     return s, dt * np.arange(1, steps + 1), G * (np.sin(th) - mu * np.cos(th))
@@ -121,8 +123,8 @@ def ball_through_cloth(solver_name: str, full: bool) -> Outcome:
     v[-1, 2] = -50.0
     mass = np.full(len(x), 0.01)
     mass[-1] = ball_mass
-    edges, _ = jc.scenes.cloth_edges(n, n)
-    model, state = jc.build(x, mass, rods=[tuple(e) for e in np.asarray(edges)], fixed=[0, n - 1, n * (n - 1), n * n - 1],
+    edges, _ = cloth_edges(n, n)
+    model, state = build(x, mass, rods=[tuple(e) for e in np.asarray(edges)], fixed=[0, n - 1, n * (n - 1), n * n - 1],
                             velocities=v, radius=radius, collide=True)
     _, traj = _run(model, state, solver_name, 1 / 120, 30)
     xs = np.asarray(traj.x)
@@ -138,7 +140,7 @@ def _wall(solver_name, collide):
     x = np.concatenate([[[-1.0, 0.0]], wall])
     v = np.zeros_like(x)
     v[0, 0] = 200.0
-    model, state = jc.build(x, 1.0, fixed=list(range(1, 11)), velocities=v, radius=0.01, collide=collide,
+    model, state = build(x, 1.0, fixed=list(range(1, 11)), velocities=v, radius=0.01, collide=collide,
                             gravity=np.zeros(2))
     _, traj = _run(model, state, solver_name, 1 / 60, 5)
     return float(np.max(np.asarray(traj.x)[:, 0, 0]))
@@ -160,7 +162,7 @@ def disc_through_wall(solver_name: str, full: bool) -> Outcome:
       the sphere's face at 0.44.""",
       "geometry", solvers=CONTACT_SOLVERS)
 def particle_through_sphere(solver_name: str, full: bool) -> Outcome:
-    model, state = jc.build(np.array([[-1.0, 0.0]]), 1.0, velocities=np.array([[100.0, 0.0]]), radius=0.01,
+    model, state = build(np.array([[-1.0, 0.0]]), 1.0, velocities=np.array([[100.0, 0.0]]), radius=0.01,
                             spheres=[((0.5, 0.0), 0.05)], gravity=np.zeros(2))
     _, traj = _run(model, state, solver_name, 1 / 60, 5)
     worst = float(np.max(np.asarray(traj.x)[:, 0, 0]))
@@ -183,12 +185,12 @@ def start_overlap(solver_name: str, full: bool) -> Outcome:
     n, steps, dt = (10, 480, 1 / 240) if full else (4, 120, 1 / 240)
     t = dt * np.arange(1, steps + 1)
     x = np.array([[0.0, 0.5 + 0.01 * i] for i in range(n)])
-    model, state = jc.build(x, 1.0, radius=0.05, collide=True, planes=[((0.0, 1.0), 0.0)])
+    model, state = build(x, 1.0, radius=0.05, collide=True, planes=[((0.0, 1.0), 0.0)])
     _, traj = _run(model, state, solver_name, dt, steps)
     speed = np.linalg.norm(np.asarray(traj.v, np.float64), axis=-1).max(1)
     fast = float(np.max(speed - G * t))
     gain = float(np.max(_energy(traj, 1.0)) - G * np.sum(x[:, 1]))
-    model, state = jc.build(np.array([[0.0, 0.0]]), 1.0, radius=0.01, spheres=[((-0.3, 0.0), 0.5), ((0.3, 0.0), 0.5)])
+    model, state = build(np.array([[0.0, 0.0]]), 1.0, radius=0.01, spheres=[((-0.3, 0.0), 0.5), ((0.3, 0.0), 0.5)])
     _, traj = _run(model, state, solver_name, dt, 120)
     speed = np.linalg.norm(np.asarray(traj.v, np.float64), axis=-1).max(1)
     fast = max(fast, float(np.max(speed - G * t[:120])))
