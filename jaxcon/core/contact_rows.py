@@ -145,8 +145,8 @@ def overlap_normal(d0, disp, R, ahead=None, hold=None):
       the sweeps of a substep (with the current one it switched between the two normals from sweep to sweep,
       and RATTLE's break at dt 1/60 ended with balls 23% of a diameter into each other).
 
-    `floor` (<= 0): the gap the contact is projected onto: 0, or for a start overlap deeper than `hold` (default
-    `CONTACT_SLOP` R) the start's gap C0: the position pass keeps such an overlap from getting deeper but does not
+    `floor` (<= 0): the gap the contact is projected onto: 0, or for a start overlap deeper than `hold` (at
+    least `CONTACT_SLOP` R; the position-level solvers pass PUSH_OUT_SPEED h) the start's gap C0: the position pass keeps such an overlap from getting deeper but does not
     push it out (that would become velocity, v = dp / h); `solvers.contact.push_out` does, at position level, at
     most PUSH_OUT_SPEED h per substep. Shallower overlaps (what a substep's sweeps left of the last one's
     contacts) are projected out as before: held too, a landing pile kept them (XPBD's grid pile overlapped 0.75%
@@ -165,7 +165,7 @@ def overlap_normal(d0, disp, R, ahead=None, hold=None):
     dist, n = direction(d)
     fixed = deep | hit
     n = jnp.where(fixed, jnp.where(deep, n0, n_hit), n)
-    hold = CONTACT_SLOP * R if hold is None else hold
+    hold = CONTACT_SLOP * R if hold is None else jnp.maximum(hold, CONTACT_SLOP * R)
     return n, jnp.where(fixed, dot(n, d), dist) - R, jnp.where(C0 < -hold, C0, 0)
 
 
@@ -855,7 +855,7 @@ def obstacle_gap(cs: ContactSystem, q: int, p):
     return nrm, dist - cs.sphere_radius[s] - r
 
 
-def obstacle_moved_gap(cs: ContactSystem, q: int, x, dp, ahead=None):
+def obstacle_moved_gap(cs: ContactSystem, q: int, x, dp, ahead=None, hold=0.0):
     """(unit normal, gap, floor) of every particle against obstacle q at positions x + dp, x the start of a
     position-level substep and dp the displacement since (`overlap_normal`, with the predicted one `ahead`, holding start overlaps deeper than
     CONTACT_SLOP r; a plane's normal is
@@ -865,10 +865,10 @@ def obstacle_moved_gap(cs: ContactSystem, q: int, x, dp, ahead=None):
     if q < cs.ct.n_planes:
         nrm = jnp.broadcast_to(cs.plane_normal[q].reshape((dim,) + (1,) * nview), x.shape)
         C0 = dot(nrm, x) - cs.plane_offset[q] - r
-        return nrm, C0 + dot(nrm, dp), jnp.where(C0 < -CONTACT_SLOP * r, C0, 0)
+        return nrm, C0 + dot(nrm, dp), jnp.where(C0 < -jnp.maximum(hold, CONTACT_SLOP * r), C0, 0)
     s = q - cs.ct.n_planes
     c = cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
-    return overlap_normal(x - c, dp, cs.sphere_radius[s] + r, ahead, CONTACT_SLOP * r)
+    return overlap_normal(x - c, dp, cs.sphere_radius[s] + r, ahead, jnp.maximum(hold, CONTACT_SLOP * r))
 
 
 def obstacle_size(cs: ContactSystem, q: int):

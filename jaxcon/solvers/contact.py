@@ -561,7 +561,7 @@ def _position_row(disp, n, C, floor, k, mu, ln, lt):
     return n * (new_n - ln) + (new_t - lt), new_n, new_t
 
 
-def position_pass(cs: ContactSystem, w, x, dp, imp: Impulses, partners=None, ahead=None):
+def position_pass(cs: ContactSystem, w, x, dp, imp: Impulses, partners=None, ahead=None, h=None):
     """One position-level pass over every contact (the section's comment above): obstacles, then the pairs, each
     block colour by colour (`layout.each_colour`: round by round, or a grid model's `partners` [n, K] slot by
     slot, where the rows of one slot, whose particles may repeat, are relaxed by mass splitting over those that
@@ -570,14 +570,17 @@ def position_pass(cs: ContactSystem, w, x, dp, imp: Impulses, partners=None, ahe
     the displacement's part, `contact_rows.overlap_normal`, which also gives the speculative normal of a contact
     whose path passes through the other body, and the floor: no contact gets deeper than it starts); imp: position
     multipliers (kg m) accumulated in this substep; `ahead`: the substep's predicted displacement, which decides
-    the speculative normals (default dp). Returns (dp, imp)."""
+    the speculative normals (default dp); h: the substep's length, a start overlap deeper than PUSH_OUT_SPEED h
+    is held, not projected (`push_out` moves it; shallower ones, what the last substep's sweeps left, are
+    projected, so at most PUSH_OUT_SPEED per contact becomes velocity). Returns (dp, imp)."""
     ct, mu = cs.ct, cs.friction
+    hold = 0.0 if h is None else PUSH_OUT_SPEED * h
     on, ot = imp.obs_n, imp.obs_t
     if ct.n_obstacles:
         k = L.safe_reciprocal(w[0])
 
         def obstacle(dp, c, lam):
-            n, C, floor = obstacle_moved_gap(cs, c.q, x, dp, ahead)
+            n, C, floor = obstacle_moved_gap(cs, c.q, x, dp, ahead, hold)
             P, ln, lt = _position_row(dp, n, C, floor, k, mu, *lam)
             return dp + w * P, (ln, lt)
 
@@ -591,7 +594,7 @@ def position_pass(cs: ContactSystem, w, x, dp, imp: Impulses, partners=None, ahe
         def pair(df, c, rows):
             _, (ln, lt) = rows
             disp = c.rel(df)
-            n, C, floor = overlap_normal(c.rel(xf), disp, c.both(r), None if af is None else c.rel(af))
+            n, C, floor = overlap_normal(c.rel(xf), disp, c.both(r), None if af is None else c.rel(af), hold)
             if c.split:
                 act = ((c.partner >= 0) & ((C < floor) | (ln > 0))).astype(df.dtype)
                 k = c.split_mass(wf, act) * act

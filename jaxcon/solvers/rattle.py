@@ -109,7 +109,7 @@ class RATTLE(Solver):
             if cs is None:
                 return x, v, mu, imp
             dp = x - x0
-            moved, imp = contact.position_pass(cs, sys.w, x0, dp, imp, partners, h * v_approach)
+            moved, imp = contact.position_pass(cs, sys.w, x0, dp, imp, partners, h * v_approach, h)
             return x + (moved - dp), v + (moved - dp) / h, mu, imp
 
         carry = (x, v, zero, None if cs is None else zero_impulses(topo, cs.ct, dtype))

@@ -93,7 +93,7 @@ class XPBD(Solver):
                 dp, mu, imp = c
                 dp, mu = sweep_colours(i, (dp, mu))
                 if cs is not None:
-                    dp, imp = contact.position_pass(cs, sys.w, x, dp, imp, partners, ahead)
+                    dp, imp = contact.position_pass(cs, sys.w, x, dp, imp, partners, ahead, h)
                 return dp, mu, imp
 
             zero = tuple(jnp.zeros(b.shape, dtype) for b in topo.blocks)
