@@ -1,4 +1,4 @@
-"""Forward-model error on the recording of issue 23 (docs/fitting.md, "Which solver to fit with"): every solver
+"""Forward-model error on the recording (docs/fitting.md, "Which solver to fit with"): every solver
 run with the TRUE lengths, masses and initial state, compared with the exact SciPy positions at the 30 Hz
 frames over 3 s. A fit cannot recover parameters to better than the error its forward model makes with the
 true ones; the recording's noise is 2 mm per coordinate.

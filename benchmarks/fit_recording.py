@@ -1,4 +1,4 @@
-"""The recording fit of issue 23 (docs/fitting.md, "Fitting a recording"): the SciPy double pendulum
+"""The recording fit (docs/fitting.md, "Fitting a recording"): the SciPy double pendulum
 (`jaxcon.bench.references.scipy_ode.RECORDING`) fitted through `setup=` (initial angles and angular velocities,
 both lengths, the mass ratio) from lengths (1.0, 0.5), ratio 1 and zero angular velocities, with default
 options, for several solvers, frame rates of the simulation and noise seeds. Prints one row per fit: errors,

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU checks of issue 25 (part 5: the batch in one piece; part 3: the grid at 1e5 particles; the disc box),
+# The GPU checks (the batch in one piece; the grid at 1e5 particles; the disc box),
 # in one call on a lent GPU machine, each part under its own time limit. Logs go to $OUT (or ./gpu_out).
 #
 #   bash benchmarks/gpu_session.sh            # on the GPU machine, from the repository root

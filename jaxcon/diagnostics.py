@@ -60,18 +60,25 @@ def energy(model: Model, x, v):
 @jax.jit
 def _energy(model: Model, x, v):
     pe = -jnp.sum(_masses(model) * jnp.sum(x * model.gravity, -1), -1)
+    return _kinetic_energy(model, v) + pe + _elastic_energy(model, x)
+
+
+def _elastic_energy(model: Model, x):
+    """The potential energy C^2 / (2 alpha) of the compliant rows of the constraint sets at x [..., n, dim]."""
+    pe = jnp.zeros(x.shape[:-2], x.dtype)
     for c, C in zip(model.constraints, _set_values(model, x)):
         alpha = jnp.broadcast_to(jnp.asarray(c.compliance, C.dtype), (c.m,))
         soft = alpha > 0
         stretch = jnp.minimum(C, 0) if c.unilateral else C
         pe = pe + jnp.sum(jnp.where(soft, stretch * stretch / (2 * jnp.where(soft, alpha, 1)), 0), -1)
-    return _kinetic_energy(model, v) + pe
+    return pe
 
 
-def _set_values(model: Model, x) -> list:
-    """C of every row of each `jc.Constraint` set at positions x [..., n, dim]: a list of [..., m_set], 0 where
-    C is not finite at finite positions (a degenerate configuration, where the solvers leave the row inactive
-    too); NaN where the row's positions are not finite (a diverged run stays visible)."""
+def _set_values(model: Model, x, degenerate=0.0) -> list:
+    """C of every row of each `jc.Constraint` set at positions x [..., n, dim]: a list of [..., m_set],
+    `degenerate` where C is not finite at finite positions (a degenerate configuration, where the solvers leave
+    the row inactive: NaN for `violation`, so an inactive row is not reported as satisfied; 0 for the energy);
+    NaN where the row's positions are not finite (a diverged run stays visible)."""
     out = []
     for c in model.constraints:
         xs = x[..., c.particles.array, :]                      # [..., m, k, dim]
@@ -80,7 +87,7 @@ def _set_values(model: Model, x) -> list:
             f = jax.vmap(f, in_axes=(0, None))
         C = f(xs, c.params)
         sane = jnp.all(jnp.isfinite(xs), axis=(-1, -2))
-        out.append(jnp.where(jnp.isfinite(C), C, jnp.where(sane, 0, jnp.nan)))
+        out.append(jnp.where(jnp.isfinite(C), C, jnp.where(sane, degenerate, jnp.nan)))
     return out
 
 
@@ -120,7 +127,7 @@ def _violation(model: Model, x):
     err = jnp.where(t.is_rope, jnp.maximum(err, 0), jnp.abs(err))
     L = jnp.asarray(model.rest_length)
     parts = [err / jnp.where(L > 0, L, 1)]
-    for c, C in zip(model.constraints, _set_values(model, x)):
+    for c, C in zip(model.constraints, _set_values(model, x, jnp.nan)):
         parts.append(jnp.maximum(-C, 0) if c.unilateral else jnp.abs(C))
     return jnp.concatenate(parts, -1)
 
@@ -228,8 +235,10 @@ PENETRATION_LIMIT = 0.5
 
 
 #: ... or when its total energy rose above the initial energy by more than this many energy scales, the scale
-#: being ``KE_0 + M |g| sum(L)`` (the initial kinetic energy plus the potential energy all free mass would
-#: release by falling the total rest length of the model), floored at the machine tiny.
+#: being ``KE_0 + PE_0 + M |g| sum(L)`` (the initial kinetic energy, the elastic energy of the compliant rows,
+#: plus the potential energy all free mass would release by falling the total rest length of the model); where
+#: that is 0 (no gravity, motion or stored energy at the start), the largest kinetic plus elastic energy of the
+#: run; floored at the machine tiny. A change within rounding of the energies is no gain.
 ENERGY_LIMIT = 10.0
 
 
@@ -346,8 +355,11 @@ def _diagnosis(model: Model, traj: Trajectory, state0: Optional[State], energy: 
     the energy gain out of `bad` (`jc.fit` of a driven experiment: the drive's work is no divergence)."""
     t = model.topology
     x, v = traj.x, traj.v
-    viol = (nan_max(jnp.where(_hard(model, x.dtype), _violation(model, x), 0), axis=-1) if t.m
-            else jnp.zeros(x.shape[:1], x.dtype))
+    if t.m:
+        rows = _violation(model, x)         # NaN for a row whose C is not finite, compliant or not: flagged
+        viol = nan_max(jnp.where(_hard(model, x.dtype) | jnp.isnan(rows), rows, 0), axis=-1)
+    else:
+        viol = jnp.zeros(x.shape[:1], x.dtype)
     e = _energy(model, x, v)
     x0, v0 = (x[0], v[0]) if state0 is None else (state0.x, state0.v)
     e0 = _energy(model, x0, v0)
@@ -358,9 +370,17 @@ def _diagnosis(model: Model, traj: Trajectory, state0: Optional[State], energy: 
     # from a pivot had a scale of ~1e-308 J and an energy gain of -3.8e303).
     extent = 0 if model.contact is None and t.m_pairs else jnp.linalg.norm(jnp.max(x0, 0) - jnp.min(x0, 0)) + (
         jnp.max(jnp.abs(x0)))
-    scale = ke0 + mass * jnp.linalg.norm(model.gravity) * (jnp.sum(model.rest_length) + extent)
-    scale = jnp.maximum(scale, jnp.finfo(jnp.result_type(scale)).tiny)
-    gain = (e - e0) / scale
+    scale = ke0 + _elastic_energy(model, x0) + mass * jnp.linalg.norm(model.gravity) * (
+        jnp.sum(model.rest_length) + extent)
+    # Without gravity, motion or stored energy at the start, the scale is 0: the energy the run exchanges
+    # (its largest kinetic plus elastic energy) is the scale then, and a change within rounding is no gain
+    # (it was (1e-18 J) / tiny = inf).
+    fi = jnp.finfo(jnp.result_type(scale))
+    exchanged = nan_max(_kinetic_energy(model, v) + _elastic_energy(model, x))
+    scale = jnp.maximum(jnp.where(scale > fi.tiny, scale, exchanged), fi.tiny)
+    change = e - e0
+    change = jnp.where(jnp.abs(change) <= 64 * fi.eps * jnp.maximum(jnp.abs(e), jnp.abs(e0)), 0, change)
+    gain = change / scale
     finite = (jnp.all(jnp.isfinite(x), axis=(-1, -2)) & jnp.all(jnp.isfinite(v), axis=(-1, -2))
               & jnp.all(jnp.isfinite(traj.lam), axis=-1))
     ok = finite & (viol <= VIOLATION_LIMIT) & ((gain <= ENERGY_LIMIT) if energy else True)

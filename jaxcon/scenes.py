@@ -255,7 +255,7 @@ def drape(n: int = 16, size: float = 1.0, mass: float = 0.5, *, height: float = 
 
 def cloth_drop(n: int = 24, size: float = 1.0, mass: float = 0.5, *, tilt: float = 0.1, height: float = 0.02,
                radius: float = 0.45, friction: float = 0.3, collide=True, max_neighbours=None, dtype=None):
-    """A free n-by-n cloth that falls onto the floor z = 0 and folds onto itself: issue 25's self-collision scene.
+    """A free n-by-n cloth that falls onto the floor z = 0 and folds onto itself: the self-collision scene of docs/contacts.md.
 
     The cloth (structural and shear rods, `size` m square, `mass` kg) hangs almost upright: its rows rise along
     z, leaning `tilt` rad (0 < tilt < pi / 2) from the vertical towards +y, its lowest row `height` m above the
@@ -342,7 +342,7 @@ def disc_box(n: int = 1024, radius: float = 0.5, mass: float = 1.0, *, friction:
              dtype=None):
     """A 2-D pile: n discs of `radius` m and `mass` kg in staggered rows (`disc_box_layout`) dropped from rest
     into a box (a floor y = 0 and walls x = 0 and x = W), under gravity, `friction` and `restitution` on every
-    contact (issue 25's scene: R = 0.5 m, 1 kg, mu 0.5, e 0). `collide` and `max_neighbours` go to `jc.build`
+    contact (docs/contacts.md's disc box: R = 0.5 m, 1 kg, mu 0.5, e 0). `collide` and `max_neighbours` go to `jc.build`
     ("grid": the neighbour grid at any size)."""
     for name, v in (("radius", radius), ("mass", mass), ("drop", drop)):
         _value("disc_box", name, v, (), positive=True)

@@ -335,7 +335,7 @@ axes[0].legend(); axes[1].legend()
 plt.tight_layout()'''),
     ("md", "## A cloth draped over a sphere\n\nA free 16x16 cloth (8x8 reduced) falls from 1 m onto a sphere of "
            "radius 0.3 m resting on the floor. The right panel is the deepest overlap with the sphere, as a "
-           "fraction of its radius (the issue's bound is 1%)."),
+           "fraction of its radius (the bound the tests hold it to is 1%)."),
     ("code", '''n = 8 if SMALL else 16
 model, state = jc.scenes.drape(n=n)
 dt, steps = 1 / 240, (120 if SMALL else 480)

@@ -129,7 +129,7 @@ def _bound_live_executables():
 # in the extended run of 2026-11-25 (with the 41 variants that were here before and are back in the default run,
 # which the emitter setting above brought from 754 s to 379 s).
 SLOW = {
-    # the 24x24 cloth's self-collision (issue 25's acceptance size, measured in docs/contacts.md): the 10x10 cloth
+    # the 24x24 cloth's self-collision (the acceptance size, measured in docs/contacts.md): the 10x10 cloth
     # on the grid stays (PGS and XPBD) in the same test
     "tests/test_contacts_self.py::test_a_cloth_dropped_and_folded_on_the_floor_never_passes_through_itself[PGS-24]",
     "tests/test_contacts_self.py::test_a_cloth_dropped_and_folded_on_the_floor_never_passes_through_itself[XPBD-24]",

@@ -14,8 +14,10 @@ import pytest
 import jaxcon as jc
 from jaxcon.core import batch
 
+# RATTLE with a fixed sweep count: to a tolerance, a batch-minor system stops when every copy has converged and
+# vmap's batched predicate runs every sweep, so the two agree to the tolerance, not bitwise
 SOLVERS = [jc.PGS(), jc.PGS(stabilization="split"), jc.Jacobi(), jc.XPBD(), jc.Penalty(substeps=30), jc.Direct(),
-           jc.SoftStep(), jc.RATTLE()]
+           jc.SoftStep(), jc.RATTLE(10, tolerance=0.0)]
 
 
 def _states(state, B, seed=1):

@@ -7,10 +7,21 @@ import pytest
 from jaxcon.bench import conformance
 
 CASES = conformance.load()
-CELLS = [(c.name, s) for c in CASES.values() for s in c.solvers]
+
+#: Cells that fail today, each with the reason (docs/conformance.md lists them with their numbers). They are
+#: strict expected failures: a cell here that starts passing fails the suite until it is taken off the list.
+OPEN = {
+}
 
 
-@pytest.mark.parametrize("case_name,solver", CELLS, ids=[f"{c}-{s}" for c, s in CELLS])
+def _cells():
+    for c in CASES.values():
+        for s in c.solvers:
+            marks = [pytest.mark.xfail(strict=True, reason=OPEN[c.name, s])] if (c.name, s) in OPEN else []
+            yield pytest.param(c.name, s, marks=marks, id=f"{c.name}-{s}")
+
+
+@pytest.mark.parametrize("case_name,solver", list(_cells()))
 def test_cell(case_name, solver):
     cell = conformance.run_cell(case_name, solver, full=False)
     assert cell.status in ("PASS", "REFUSED"), f"{case_name} / {solver}: {cell.value:.4g} ({cell.detail})"
@@ -27,3 +38,8 @@ def test_a_refusal_must_name_another_solver():
     assert conformance.names_a_solver("use jc.PGS for this", "XPBD")
     assert not conformance.names_a_solver("refused, sorry", "XPBD")
     assert not conformance.names_a_solver("XPBD( is refused", "XPBD")
+
+
+def test_open_cells_are_real_cells():
+    for case_name, solver in OPEN:
+        assert case_name in CASES and solver in CASES[case_name].solvers, (case_name, solver)

@@ -1,4 +1,4 @@
-"""The layout of constraint sets (issue 24, part 2: the speed of user-written constraints). A large set is swept
+"""The layout of constraint sets (the speed of user-written constraints). A large set is swept
 one colour at a time with each colour a block of its own (`topology.SetColour`): read through strided slices
 and written through pads where its rows form boxes of the particle grid (`topology.lattice_colouring` makes
 such colours for rows that are translates of a few stencils), through a gather otherwise. Each layout is checked

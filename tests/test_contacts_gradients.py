@@ -1,4 +1,4 @@
-"""Derivatives through contacts in float32 and float64, and bad contact leaves under jit (issue 22).
+"""Derivatives through contacts in float32 and float64, and bad contact leaves under jit.
 
 - Reverse mode (jax.grad) of every contact leaf (radius, friction, restitution, restitution_threshold,
   plane_normal, plane_offset, sphere_centre, sphere_radius) with PGS equals float64 central differences (along
@@ -66,7 +66,7 @@ def test_restitution_scale_reverse_mode_is_finite_when_the_phases_agree():
 
 @pytest.mark.optimised          # the NaN came from the compiled program's rounding (not at XLA's lowest effort)
 def test_falling_chain_friction_gradient_in_float32():
-    """The issue's reproducer: grad was NaN; jacfwd gives -5.03e-5, float64 -5.0313e-5."""
+    """The reported reproducer: grad was NaN; jacfwd gives -5.03e-5, float64 -5.0313e-5."""
     def end_x(mu, dtype):
         model, state = jc.scenes.falling_chain(5, angle=0.1, dtype=dtype)
         final, _ = jc.rollout(model.replace(friction=mu), state, jc.PGS(10), 1 / 120, 60)

@@ -1,5 +1,5 @@
 """The neighbour grid with every contact solver: substeps, 3-D, pair friction against SciPy, jc.fit and
-jc.batched_rollout (issue 25, part 3). Its gradients against central differences are in test_contacts_grid.py.
+jc.batched_rollout. Its gradients against central differences are in test_contacts_grid.py.
 Some variants are in the extended set (tests/conftest.py SLOW: `python -m pytest -m slow`)."""
 import jax
 import jax.numpy as jnp

@@ -1,4 +1,4 @@
-"""Piles at rest (issue 25): the disc box comes to rest with PGS on the neighbour grid, its layout, and the
+"""Piles at rest: the disc box comes to rest with PGS on the neighbour grid, its layout, and the
 bench's overlap measure. The incline (mu 0.5 slides at g (sin 30 - mu cos 30), mu 0.6 sticks) is in
 tests/test_contacts.py."""
 import jax

@@ -1,4 +1,4 @@
-"""Self-collision of models with rods (issue 25, part 4): `collide=True` on a chain or a cloth keeps every pair of
+"""Self-collision of models with rods: `collide=True` on a chain or a cloth keeps every pair of
 its particles apart except those one constraint joins and those already within contact distance at build.
 
 The acceptance check is geometric and independent of the solver: over every recorded step, no pair that is not

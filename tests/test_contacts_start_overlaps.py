@@ -1,4 +1,4 @@
-"""Particles that start inside an obstacle or another particle (issue 22): every contact solver pushes them out
+"""Particles that start inside an obstacle or another particle: every contact solver pushes them out
 in a defined direction (the last axis, up, where the centres coincide: `contact_rows.direction`), at no more than
 `contact_rows.PUSH_OUT_SPEED` (Box2D's 3 m/s cap), and never with more kinetic energy than that push-out's.
 

@@ -1,4 +1,4 @@
-"""Diagnostics of `jc.Constraint` sets (issue 24): `jc.violation` reports every constraint in lam's order, `diagnose`
+"""Diagnostics of `jc.Constraint` sets: `jc.violation` reports every constraint in lam's order, `diagnose`
 holds the hard ones to its limit, and `jc.energy` counts a compliant constraint's potential energy C^2 / (2 alpha)."""
 import jax.numpy as jnp
 import numpy as np

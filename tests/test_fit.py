@@ -99,7 +99,7 @@ def _double_pendulum_experiment():
     return model, state, solver, obs, model.replace(rest_length=jnp.array([1.0, 0.5])), true_lengths
 
 
-# ---- acceptance: default arguments from the nominal start (issue 11) -----------------------------------------
+# ---- acceptance: default arguments from the nominal start -----------------------------------------
 @pytest.mark.optimised             # hundreds of iterations of one program
 def test_defaults_fit_a_chain_released_from_a_violated_start():
     """8 links of nominal 0.25 m, true lengths perturbed by up to 10%, true beta 0.35, released at 1 rad from
@@ -132,7 +132,7 @@ def test_defaults_fit_a_chain_released_from_a_violated_start():
     # compiled once for all stages: the update traces the rollout a fixed number of times (LM: the residuals,
     # their forward-mode Jacobian and the trial step), not once per stage or iteration
     assert len(traces) <= 3, len(traces)
-    assert elapsed < 60, elapsed          # the issue's budget on the 2-core CPU (about 5 s measured)
+    assert elapsed < 60, elapsed          # the budget set on the 2-core CPU (about 5 s measured)
 
 
 def test_defaults_fit_double_pendulum_lengths_from_two_seconds():

@@ -1,4 +1,4 @@
-"""jc.fit on driven experiments (issue 23, part 6): the experiment's known `forces` and `targets` reach every
+"""jc.fit on driven experiments: the experiment's known `forces` and `targets` reach every
 rollout of the fit, sliced like the observations.
 
 References: SciPy's DOP853 solution (1e-12) of a pendulum in its angle coordinate, on a pivot moving as

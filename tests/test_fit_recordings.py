@@ -1,4 +1,4 @@
-"""jc.fit on recordings jaxcon did not make (issue 23).
+"""jc.fit on recordings jaxcon did not make.
 
 The recording (`reference.RECORDING`): a planar double pendulum simulated with SciPy in angle coordinates,
 m = 1.0 / 0.7 kg, L = 0.9 / 0.6 m, started mid-swing at angles (1.0, -0.5) rad with angular velocities (1.5, -2.0)
@@ -41,7 +41,7 @@ def _true_velocities():
 
 @pytest.mark.optimised             # ~90 Levenberg-Marquardt updates over 720 steps
 def test_recording_fit_through_setup_reaches_the_noise_floor():
-    """Acceptance (issue 23, part 7): lengths within 0.05%, the mass ratio within 0.3%, with converged=True, in
+    """Acceptance: lengths within 0.05%, the mass ratio within 0.3%, with converged=True, in
     under 60 s on the 2-core CPU, from lengths (1.0, 0.5), ratio 1 and zero angular velocities; the truth within
     3 std; the errors left are the noise (2 mm, uncorrelated)."""
     obs, ss = _recording()
@@ -69,7 +69,7 @@ def test_recording_fit_through_setup_reaches_the_noise_floor():
 
 @pytest.mark.optimised
 def test_recording_fit_of_lengths_and_initial_state_from_rest():
-    """Acceptance (issue 23, part 7): masses known, params=("rest_length", "x0", "v0") from v0 = 0 (the guess
+    """Acceptance: masses known, params=("rest_length", "x0", "v0") from v0 = 0 (the guess
     comes from the first frames) and lengths (1.0, 0.5) laid out along the first frame's angles: the lengths
     within 0.05% and within 3 std of the truth; the fitted start within 4 std of the true one."""
     obs, ss = _recording()
@@ -91,7 +91,7 @@ def test_recording_fit_of_lengths_and_initial_state_from_rest():
 
 @pytest.mark.optimised
 def test_recording_fit_of_both_inverse_masses_warns_that_their_scale_is_not_identifiable():
-    """Acceptance (issue 23, part 7): positions alone do not set a mass scale. The fit says so, naming both
+    """Acceptance: positions alone do not set a mass scale. The fit says so, naming both
     inverse masses, gives them std inf, and does not return a collapsed ratio marked converged (it returns the
     right ratio)."""
     obs, ss = _recording()

@@ -4,7 +4,7 @@ energy gain, the physical impulse reported, accuracy of Baumgarte's or better, g
 Baumgarte within an adaptive slop, projection beyond: where a rod's |C| is within its slop (at least 0.5% of its
 length, and twice the steady error Baumgarte leaves on its rotation) the velocity solve sees Baumgarte's bias;
 beyond it the bias is 0 and the positions are projected back to the rest lengths after the step (PGS, Jacobi:
-nonlinear Gauss-Seidel / Jacobi sweeps; Direct: an exact linear correction at Baumgarte's rate). Acceptance scenes (issue 22): a 20-link chain (2 m, 0.2 kg) at 0.3 rad with every link 25%
+nonlinear Gauss-Seidel / Jacobi sweeps; Direct: an exact linear correction at Baumgarte's rate). Acceptance scenes: a 20-link chain (2 m, 0.2 kg) at 0.3 rad with every link 25%
 too long, with and without a 20:1 end mass, dt 1/240, 1 s; and double pendulums started on the constraint
 manifold against SciPy. SWING, the most kinetic energy the chain's swing can supply, is that of the chain at its
 rest lengths released at 0.3 rad falling to hanging straight down.
@@ -65,7 +65,7 @@ def _mid_swing_double_pendulum():
 
 @pytest.mark.parametrize("hz", [240, 960])
 def test_split_is_as_accurate_as_baumgarte_without_position_error(hz):
-    """On the manifold there is nothing to correct, and split must not lose accuracy. The issue's split solve kept
+    """On the manifold there is nothing to correct, and split must not lose accuracy. A plain split solve kept
     J v = 0, so every step moved the bobs along the tangent and the next step took the outward velocity away (289
     mm against Baumgarte's 16.7 mm at 240 Hz); within the slop split is Baumgarte, to the digit here."""
     model, state, th, om, L, M = _mid_swing_double_pendulum()

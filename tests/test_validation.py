@@ -336,7 +336,8 @@ def test_grid_partners_must_be_particles_of_the_model():
     other, other_state = jc.build(x[:2], 1.0, radius=0.1, collide="grid", planes=[((0.0, 1.0), 0.0)])
     with pytest.raises(ValueError, match=r"state.contact_n` must have shape .*another model"):
         jc.rollout(model, other_state.replace(x=state.x, v=state.v), jc.PGS(), 0.01, 2)
-    with pytest.raises(ValueError, match=r"state.contact_partners` must have shape \(3, 8\), got shape \(2, 8\).*"
+    assert K == 3 and other.contact.grid_k == 2                  # the default 8 capped at the number of particles
+    with pytest.raises(ValueError, match=r"state.contact_partners` must have shape \(3, 3\), got shape \(2, 2\).*"
                                          "another model"):
         jc.rollout(model, state.replace(contact_partners=other_state.contact_partners), jc.PGS(), 0.01, 2)
     with pytest.raises(ValueError, match=r"state.contact_n` must have shape \(\d+,\), got a scalar"):

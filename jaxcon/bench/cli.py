@@ -26,7 +26,8 @@ DESCRIPTION = """jaxcon: differentiable constrained particle dynamics in JAX.
           and a rest-length identification with jc.fit
   bench   speed against error: median step times after compilation, compile time apart, the error reached,
           batched throughput and gradient compile time; --speed-vs-error sweeps every solver; --contacts runs
-          the disc box against pymunk and Box2D; --emitters measures XLA's CPU emitters' compile times"""
+          the disc box against pymunk and Box2D; --conformance runs every solver on every case against
+          independent references (docs/conformance.md); --emitters measures XLA's CPU emitters' compile times"""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -63,15 +64,20 @@ def _parser() -> argparse.ArgumentParser:
                         "(JSON, CSV and, with matplotlib, plots)")
     b.add_argument("--contact-grid", nargs="*", type=_positive_int, metavar="N",
                    help="instead: PGS(10)'s cost per step with all-pairs contacts against the neighbour grid, for "
-                        "lattices of N discs (default 256 1024 2048)")
+                        "lattices of N discs (default 256 1024 2048; with --small 16 64, 2 steps); JSON to --out")
     b.add_argument("--contacts", nargs="*", type=_positive_int, metavar="N",
-                   help="instead: issue 25's disc box (N discs dropped into a box, PGS(10) on the grid, float32) "
+                   help="instead: the disc box (N discs dropped into a box, PGS(10) on the grid, float32) "
                         "against pymunk and Box2D 2.3 when installed, in the same run: ms/step, compile time, "
                         "max speed and overlap at 4 s and 8 s (default 64 256 1024; up to 16384)")
     b.add_argument("--emitters", action="store_true",
                    help="instead: compile and run time of five programs with XLA's CPU fusion emitters (the "
                         "default) and without them (XLA_FLAGS=--xla_cpu_use_fusion_emitters=false), in alternating "
                         "child processes, and the difference of their outputs (JSON to --out, default bench.json)")
+    b.add_argument("--conformance", nargs="*", metavar="CASE",
+                   help="instead: the conformance matrix, every case (or the named ones) with every solver at "
+                        "full size, with Box2D and pymunk where a case has them; writes a Markdown table to --out "
+                        "(default docs/conformance.md; --small: the suite's reduced sizes). Exit status 1 if a "
+                        "cell fails")
     b.add_argument("--out-dir", default="speed_vs_error", metavar="DIR",
                    help="output folder of --speed-vs-error (created if missing; default speed_vs_error)")
     return p
@@ -102,6 +108,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.cmd is None:
         p.error("choose a command: demo or bench")
+    if args.cmd == "bench" and args.conformance is not None and args.out == "bench.json":
+        args.out = os.path.join("docs", "conformance.md")
     if args.cmd == "bench" and args.out:
         problem = _unwritable_file(args.out)
         if problem:
@@ -112,9 +120,12 @@ def main(argv=None) -> int:
         from jaxcon.bench.speed_vs_error import run
         run(small=args.small, out_dir=args.out_dir)
         return 0
+    if args.cmd == "bench" and args.conformance is not None:
+        from jaxcon.bench.conformance.table import main as conformance
+        return conformance(full=not args.small, out=args.out, cases=args.conformance or None)
     if args.cmd == "bench" and args.contact_grid is not None:
         from jaxcon.bench.contact_grid import main as contact_grid
-        contact_grid(tuple(args.contact_grid) or (256, 1024, 2048))
+        contact_grid(tuple(args.contact_grid), small=args.small, out_path=args.out or None)
         return 0
     if args.cmd == "bench" and args.contacts is not None:
         from jaxcon.bench.contacts import main as contacts

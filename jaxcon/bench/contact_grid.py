@@ -10,6 +10,7 @@ column would then time the grid. It is left out above `ALL_PAIRS_MAX` particles.
 """
 from __future__ import annotations
 
+import json
 import sys
 import time
 
@@ -59,15 +60,29 @@ def per_step(n: int, collide, steps: int):
     return first, best / steps
 
 
-def main(sizes=(256, 1024, 2048)):
+#: `--small`'s sizes and steps (seconds, for the tests).
+SMALL_SIZES, SMALL_STEPS = (16, 64), 2
+
+
+def main(sizes=(256, 1024, 2048), *, small: bool = False, out_path=None):
     """One row per size: all pairs (up to ALL_PAIRS_MAX particles) and the grid, ms per step, and the grid's
-    first call (compile and one run of the steps)."""
+    first call (compile and one run of the steps). `small`: SMALL_SIZES (unless `sizes` are given) and
+    SMALL_STEPS steps. `out_path`: also write the rows as JSON there. Returns the rows."""
     print(f"{'n':>7} {'all pairs (ms/step)':>20} {'grid (ms/step)':>15} {'grid first call (s)':>20} {'steps':>6}")
-    for n in sizes:
-        steps = 20 if n <= 512 else 5 if n <= 4096 else 2
-        a = f"{1e3 * per_step(n, 'all', steps)[1]:20.2f}" if n <= ALL_PAIRS_MAX else f"{'-':>20}"
+    rows = []
+    for n in (sizes or (SMALL_SIZES if small else (256, 1024, 2048))):
+        steps = SMALL_STEPS if small else 20 if n <= 512 else 5 if n <= 4096 else 2
+        a = 1e3 * per_step(n, "all", steps)[1] if n <= ALL_PAIRS_MAX else None
         first, g = per_step(n, "grid", steps)
-        print(f"{n:7d} {a} {1e3 * g:15.2f} {first:20.1f} {steps:6d}", flush=True)
+        a_text = f"{a:20.2f}" if a is not None else f"{'-':>20}"
+        print(f"{n:7d} {a_text} {1e3 * g:15.2f} {first:20.1f} {steps:6d}", flush=True)
+        rows.append({"n": n, "steps": steps, "all_pairs_ms_per_step": a, "grid_ms_per_step": 1e3 * g,
+                     "grid_first_call_s": first})
+    if out_path:
+        with open(out_path, "w") as f:
+            json.dump({"contact_grid": rows, "jax": jax.__version__, "backend": jax.default_backend()}, f,
+                      indent=1)
+    return rows
 
 
 if __name__ == "__main__":

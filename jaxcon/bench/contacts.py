@@ -1,6 +1,6 @@
-"""The disc box of issue 25 in jaxcon, and in pymunk and Box2D 2.3 when they are installed, in the same run.
+"""The disc box in jaxcon, and in pymunk and Box2D 2.3 when they are installed, in the same run.
 
-    python -m jaxcon bench --contacts [N ...]          (default 64 256 1024; issue 25 reports 64 .. 16384)
+    python -m jaxcon bench --contacts [N ...]          (default 64 256 1024; sizes up to 16384)
 
 N discs (R = 0.5 m, 1 kg, friction 0.5, restitution 0) in staggered rows 1 m above the floor of a box
 (`jc.scenes.disc_box`) fall and come to rest; dt = 1/60 s, 8 s simulated, 10 velocity iterations everywhere:
@@ -227,7 +227,7 @@ def paired_ratio(a: _Run, b: _Run, start: int = 0) -> float:
 
 
 PEERS = (("Box2D", "Box2D", box2d_engine), ("pymunk", "pymunk", pymunk_engine))
-#: jaxcon's configurations, (name, iterations, substeps, contact_passes or None for the default): the issue's
+#: jaxcon's configurations, (name, iterations, substeps, contact_passes or None for the default): the plain
 #: PGS(10); 2 substeps of 8 sweeps with one position pass each (at rest at 4096 discs, overlaps to 12% of R while
 #: landing, 1.79x to 1.82x Box2D there; with 10 sweeps 1.95x to 1.99x, with 7 the pile only just rests and with 5
 #: it does not, docs/contacts.md); 4 substeps of 10 with one pass (every overlap under 5% of R at 4096 discs)
@@ -238,7 +238,7 @@ def main(sizes=(64, 256, 1024), seconds=SECONDS):
     import importlib.util
 
     m = machine()
-    print(f"disc box (issue 25): R {RADIUS} m, 1 kg, friction {FRICTION}, restitution 0, dt 1/60 s, {seconds:g} s; "
+    print(f"disc box: R {RADIUS} m, 1 kg, friction {FRICTION}, restitution 0, dt 1/60 s, {seconds:g} s; "
           f"{m['cpu']}, {m['cores']} cores, {m['platform']}, jax {m['jax']}")
     peers = [(label, fn) for mod, label, fn in PEERS if importlib.util.find_spec(mod) is not None]
     missing = [label for mod, label, _ in PEERS if importlib.util.find_spec(mod) is None]

@@ -174,6 +174,14 @@ def _rest(name, rest, fn, positions, particles, key="rest"):
     if positions is None:
         raise ValueError(f"{name}: pass `rest` or the `positions` to take it from")
     x = jnp.asarray(positions)
+    n = x.shape[0] if x.ndim == 2 else None
+    if n is None:
+        raise ValueError(f"{name}: `positions` must be [n, dim], got shape {tuple(x.shape)}")
+    bad = (particles < 0) | (particles >= n)
+    if bad.any():       # JAX indexing would clamp (or wrap) these silently
+        r = int(np.argwhere(bad)[0][0])
+        raise ValueError(f"{name}: `particles[{r}]` = {particles[r].tolist()} is out of range for the {n} particles "
+                         f"in `positions` (indices must be in [0, {n - 1}])")
     return {key: jax.vmap(lambda idx: fn(x[idx], {key: jnp.zeros((), x.dtype)}))(jnp.asarray(particles))}
 
 
@@ -231,14 +239,29 @@ def corner_angle(x, p):
     return jnp.arctan2(s, jnp.sum(u * v)) - p["rest"]
 
 
+def _wrap(a):
+    """An angle (rad) wrapped into (-pi, pi]."""
+    return a - 2 * jnp.pi * jnp.ceil((a - jnp.pi) / (2 * jnp.pi))
+
+
+def bend_angle(x, p):
+    """`corner_angle`, with the difference from p["rest"] wrapped into (-pi, pi] in 2-D: C is continuous at the
+    rest angle wherever it lies (a straight arm's rest angle pi is on atan2's branch cut), and the constraint
+    pulls the short way round. In 3-D the angle lies in [0, pi] and nothing is wrapped."""
+    d = corner_angle(x, p)
+    return _wrap(d) if x.shape[-1] == 2 else d
+
+
 def angle(particles, *, rest=None, compliance=0.0, positions=None, name="angle"):
-    """Angle constraints (`corner_angle`) at the middle of [m, 3] particles, 2-D or 3-D; `rest` [m] (rad) or
-    taken from `positions`."""
+    """Angle constraints (`bend_angle`) at the middle of [m, 3] particles, 2-D or 3-D; `rest` [m] (rad) or
+    taken from `positions` (in 2-D in (-pi, pi]: a straight arm's rest is pi, held from either side)."""
     particles = _particles(particles)
     if particles.shape[1] != 3:
         raise ValueError(f"{name}: `particles` must be [m, 3] (the angle is at the middle one), got {particles.shape}")
-    return Constraint(corner_angle, particles, _rest(name, rest, corner_angle, positions, particles),
-                      compliance=compliance, name=name)
+    r = _rest(name, rest, corner_angle, positions, particles)
+    if rest is None:
+        r = {"rest": _wrap(r["rest"])}       # atan2(-0.0, -1) = -pi: the same angle as pi
+    return Constraint(bend_angle, particles, r, compliance=compliance, name=name)
 
 
 def angle_limits(particles, lo, hi, *, name="angle_limit"):
@@ -257,14 +280,19 @@ def angle_limits(particles, lo, hi, *, name="angle_limit"):
 
 
 def polygon_area(x, p):
-    """The signed area of the 2-D polygon x[0], ..., x[k-1] (counter-clockwise positive), minus p["rest"]."""
+    """The area of the polygon x[0], ..., x[k-1], minus p["rest"]. In 2-D the signed area (counter-clockwise
+    positive); in 3-D the magnitude of the vector area sum(x_i x x_{i+1}) / 2 (the area of a planar polygon in any
+    orientation; not differentiable at area 0, where the row is inactive)."""
     y = jnp.roll(x, -1, axis=0)
-    return 0.5 * jnp.sum(x[:, 0] * y[:, 1] - y[:, 0] * x[:, 1]) - p["rest"]
+    if x.shape[-1] == 2:
+        return 0.5 * jnp.sum(x[:, 0] * y[:, 1] - y[:, 0] * x[:, 1]) - p["rest"]
+    a = 0.5 * jnp.sum(jnp.cross(x, y), axis=0)
+    return jnp.sqrt(jnp.sum(a * a)) - p["rest"]
 
 
 def area(particles, *, rest=None, compliance=0.0, positions=None, name="area"):
-    """Area constraints (`polygon_area`) on [m, k] particles, each a 2-D polygon in order; `rest` or taken from
-    `positions`."""
+    """Area constraints (`polygon_area`) on [m, k] particles, each a polygon in order: signed in 2-D, the
+    vector area's magnitude in 3-D; `rest` or taken from `positions`."""
     particles = _particles(particles)
     if particles.shape[1] < 3:
         raise ValueError(f"{name}: a polygon needs at least 3 particles, got {particles.shape[1]}")
@@ -311,6 +339,11 @@ def distance(particles, *, rest=None, compliance=0.0, positions=None, unilateral
     """Distance constraints (`length`) on [m, 2] particles; `rest` or taken from `positions`. With
     `unilateral`, C = |d| - L >= 0 keeps them at least L apart (a strut that only pushes)."""
     particles = _particles(particles)
+    if particles.shape[1] != 2:
+        raise ValueError(f"{name}: `particles` must be [m, 2] (pairs), got {particles.shape}")
+    if rest is not None:
+        check_real(name, "rest", rest)
+        check_values(name, "rest", rest, nonneg=True)     # |d| = negative L has no solution
     return Constraint(length, particles, _rest(name, rest, length, positions, particles), unilateral=unilateral,
                       compliance=compliance, name=name)
 
@@ -341,4 +374,4 @@ def flatten_sets(constraints) -> list:
 
 
 __all__ = ["Constraint", "bending", "angle", "angle_limits", "area", "volume", "distance", "dihedral",
-           "corner_angle", "polygon_area", "tetra_volume", "length"]
+           "corner_angle", "bend_angle", "polygon_area", "tetra_volume", "length"]

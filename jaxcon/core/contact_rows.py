@@ -215,12 +215,13 @@ UNILATERAL = Unilateral()
 
 
 class ObstacleColour(Unilateral):
-    """Obstacle q's rows inside a sweep: one per particle, on the [dim, *view] arrays."""
+    """Obstacle q's rows inside a sweep: one per particle, on the [dim, *view] arrays. `q` is an int, or traced
+    inside `each_obstacle`'s scan; `sphere` (static) says whether it is a sphere (else a plane)."""
 
     split = False
 
-    def __init__(self, q: int):
-        self.q = q
+    def __init__(self, q, sphere: Optional[bool] = None):
+        self.q, self.sphere = q, sphere
 
     @staticmethod
     def rel(a):
@@ -329,18 +330,45 @@ def sparse_slots(partners) -> Optional[SparseSlots]:
     return SparseSlots(idx, jnp.sum(live, 1, dtype=jnp.int32))
 
 
-class ObstacleBlock:
-    """Every obstacle's rows, [Q, ...] leaves: obstacle by obstacle (planes, then spheres)."""
+#: Up to this many obstacles, a loop over them (`each_obstacle`) is written out; above, it is a `lax.scan` over the
+#: planes and one over the spheres, so that the program's size, and XLA's compile time, do not grow with their
+#: number (docs/contacts.md: a 100-plane box).
+UNROLL_OBSTACLES = 8
 
-    def __init__(self, count: int):
-        self.count = count
 
-    def each(self, fn, carry, rows):
+def each_obstacle(ct: ContactTopology, fn, carry, rows=None):
+    """``carry, out = fn(carry, q, sphere, row)`` for every obstacle q, in order (planes, then spheres): `row` is
+    `rows`' (a pytree of [Q, ...] leaves, or None) entry q, `sphere` (static) whether q is a sphere, and `q` an
+    int, or a traced index above UNROLL_OBSTACLES obstacles. The outs are stacked, [Q, ...]."""
+    Q, P = ct.n_obstacles, ct.n_planes
+    if Q <= UNROLL_OBSTACLES:
         outs = []
-        for q in range(self.count):
-            carry, out = fn(carry, ObstacleColour(q), jax.tree.map(lambda a: a[q], rows))
+        for q in range(Q):
+            carry, out = fn(carry, q, q >= P, jax.tree.map(lambda a: a[q], rows))
             outs.append(out)
         return carry, jax.tree.map(lambda *a: jnp.stack(a), *outs)
+    outs = []
+    for sphere, lo, count in ((False, 0, P), (True, P, ct.n_spheres)):
+        if not count:
+            continue
+
+        def body(c, xs, lo=lo, sphere=sphere):
+            k, row = xs
+            return fn(c, lo + k, sphere, row)
+        carry, out = lax.scan(body, carry, (jnp.arange(count, dtype=jnp.int32),
+                                            jax.tree.map(lambda a, lo=lo, count=count: a[lo:lo + count], rows)))
+        outs.append(out)
+    return carry, jax.tree.map(lambda *a: jnp.concatenate(a), *outs)
+
+
+class ObstacleBlock:
+    """Every obstacle's rows, [Q, ...] leaves: obstacle by obstacle (planes, then spheres; `each_obstacle`)."""
+
+    def __init__(self, ct: ContactTopology):
+        self.ct = ct
+
+    def each(self, fn, carry, rows):
+        return each_obstacle(self.ct, lambda c, q, sphere, row: fn(c, ObstacleColour(q, sphere), row), carry, rows)
 
 
 class RoundBlock:
@@ -561,34 +589,111 @@ CONTACT_SLOP = 0.005
 PUSH_SLOPS = 6.0
 
 
-def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h, slop=0.0):
+def _targets(C, C_spec, vn0, vn1, impact, toi, cs: ContactSystem, beta, h, bounce, slop=0.0):
     """Target velocity of contacts with gap C (`_gap`: > 0 separated, <= 0 touching), normal velocity vn0 at
     the start of the step and vn1 after the external forces, and an impact at `toi` where `impact` (module
-    docstring; a contact within rounding of touching, C = 0, may be an impact at toi ~ 0).
+    docstring; a contact within rounding of touching, C = 0, may be an impact at toi ~ 0). `bounce` = (the
+    separation speed restitution asks of each row, whether the row collided elastically): `chain_bounces`.
 
     Within an impact step the approach velocity is taken to change linearly, vn0 + (vn1 - vn0) t / h, so the
     impact speed u depends on the time of impact, and the forces keep acting for the rest of the step after the
-    bounce: target = max(e u + (vn1 - vn0) (h - toi) / h, 0). This keeps the map from one state to the next
-    continuous where the impact moves from one step to the next (at toi = h and toi = 0 both sides give the
-    same state), and gives the time-of-impact dependence of u its right derivative (du/dC = a / |vn1|).
+    bounce: target = max(b + (vn1 - vn0) (h - toi) / h, 0), b the bounce (e u for a lone impact). This keeps
+    the map from one state to the next continuous where the impact moves from one step to the next (at toi = h
+    and toi = 0 both sides give the same state), and gives the time-of-impact dependence of u its right
+    derivative (du/dC = a / |vn1|).
     A separated contact that is not an impact gets the speculative target -max(C_spec, 0) / h, C_spec its gap
-    along the row's normal: it may close that gap within the step, and never pushes. C_spec < 0 where a contact
-    overlaps by less than the rounding tolerance (separated by `_gap`, 1.2 mm at 40 m in float32): -C_spec / h
-    pushed that overlap out within one step, past the Baumgarte threshold, and kicked single discs deep in the
-    4096-disc box at 0.1 to 0.2 m/s (docs/contacts.md, piles at rest). A touching one pushes its overlap beyond
-    `slop` (m) out at -beta (C + slop) / h, at most
-    `PUSH_OUT_SPEED`.
+    along the row's normal: it may close that gap within the step, and never pushes; in the restitution phase a
+    separated contact that the impact propagation made collide elastically gets its bounce instead. C_spec < 0
+    where a contact overlaps by less than the rounding tolerance (separated by `_gap`, 1.2 mm at 40 m in
+    float32): -C_spec / h pushed that overlap out within one step, past the Baumgarte threshold, and kicked
+    single discs deep in the 4096-disc box at 0.1 to 0.2 m/s (docs/contacts.md, piles at rest). A touching one
+    pushes its overlap beyond `slop` (m) out at -beta (C + slop) / h, at most `PUSH_OUT_SPEED`.
     Returns (target, target without restitution)."""
-    dv = vn1 - vn0
-    u = -(vn0 + dv * toi / h)
-    bounce = jnp.where(u > cs.threshold, cs.restitution * u, 0)
-    rest = dv * (h - toi) / h
+    bounce, elastic = bounce
+    rest = (vn1 - vn0) * (h - toi) / h
     push = jnp.minimum(-beta * jnp.minimum(C + slop, 0) / h, PUSH_OUT_SPEED)
 
-    def target(after):
-        return jnp.where(impact, after, jnp.where(C > 0, -jnp.maximum(C_spec, 0) / h, jnp.maximum(after, push)))
+    def target(after, hit):
+        return jnp.where(hit, after, jnp.where(C > 0, -jnp.maximum(C_spec, 0) / h, jnp.maximum(after, push)))
 
-    return target(jnp.maximum(bounce + rest, 0)), target(jnp.maximum(rest, 0))
+    return target(jnp.maximum(bounce + rest, 0), impact | elastic), target(jnp.maximum(rest, 0), impact)
+
+
+#: Gauss-Seidel passes of the impact propagation (`chain_bounces`): an impact is passed on through up to about
+#: this many touching contacts in a row within one step (two per pass along a chain of listed pairs).
+BOUNCE_PASSES = 8
+
+
+def chain_bounces(cs: ContactSystem, w, v, obs, pairs, partners=None):
+    """Restitution targets of every contact row from sequential impacts, per step: ((obstacle bounce, elastic)
+    or None, (pair bounce, elastic) or None), each [rows' shape].
+
+    `obs`, `pairs`: per row (n, k, reach, off): normal, effective mass (0: no row), the approach speed the row
+    must exceed to collide within the step (its gap over h for a separated row that is no impact, else 0) and
+    a speed added to its normal velocity (the external forces' share up to its time of impact). Starting from
+    the velocities `v` before any impulse (particles [dim, *view]), `BOUNCE_PASSES` Gauss-Seidel passes
+    (obstacles, then the pairs round by round or slot by slot, as `solvers.contact.sweep`) treat each row
+    that approaches faster than its reach as a collision of its two bodies alone: the impulse (1 + e) k u
+    for an approach u, e = 0 at or below the restitution threshold (Newton's restitution applied pair by
+    pair, Box2D's per-contact rule on the velocity the contact meets). A rack or a row of touching balls
+    then passes a hit on ball by ball, as separate impacts in the order of the chain: the end ball of a
+    Newton's cradle leaves with the hit ball's velocity and the others stay, two in give two out. A pair
+    collision never raises the kinetic energy (e <= 1), so neither does the sequence.
+
+    A row that collided elastically (e > 0) gets as bounce its final separation speed of the sequence,
+    max(vn + off, 0); every other row 0 (no restitution). The solvers then solve for those separation speeds
+    with every row and constraint at once, so other constraints (rods, a floor) still hold. A lone impact's
+    bounce is e u, as Newton's rule; with no row approaching faster than the threshold (or e = 0) the passes
+    are skipped and every bounce is 0."""
+    dim, shape = v.shape[0], v.shape
+    e, threshold = cs.restitution, cs.threshold
+    wf = w.reshape(-1)
+
+    def colour(wc):
+        def update(vc, c, rows):
+            (n, k, reach, off), elastic = rows
+            u = -(dot(c.rel(vc), n) + off)
+            hit = (k > 0) & (u > reach) & (u > 0)
+            if c.split:           # a grid slot's rows share particles: mass splitting over those that collide
+                k = c.split_mass(wc, hit.astype(vc.dtype)) * (k > 0).astype(vc.dtype)
+            ee = jnp.where(u > threshold, e, 0)
+            P = n * jnp.where(hit, (1 + ee) * u * k, 0)
+            return c.apply(wc, vc, P), elastic | (hit & (ee > 0))
+        return update
+
+    def one_pass(_, carry):
+        vc, el_o, el_p = carry
+        if obs is not None:
+            vc, el_o = ObstacleBlock(cs.ct).each(colour(w), vc, (obs, el_o))
+        if pairs is not None:
+            vf, el_p = L.each_colour(pair_block(cs.ct, partners), colour(wf), vc.reshape(dim, -1), (pairs, el_p))
+            vc = vf.reshape(shape)
+        return vc, el_o, el_p
+
+    def normal_speeds(vc):
+        out = [None, None]
+        if obs is not None:
+            out[0] = dot(jnp.moveaxis(obs[0], 1, 0), vc[:, None]) + obs[3]
+        if pairs is not None:
+            vf = vc.reshape(dim, -1)
+            ia, ja, _, _ = pair_slots(cs.ct, vf.shape[1], partners)
+            out[1] = dot(pairs[0], vf[:, ja] - vf[:, ia]) + pairs[3]
+        return out
+
+    no = tuple(None if f is None else jnp.zeros(f[1].shape, bool) for f in (obs, pairs))
+    start = normal_speeds(v)
+    fast = jnp.zeros((), bool)
+    for f, vn in zip((obs, pairs), start):
+        if f is not None:
+            fast = fast | jnp.any((f[1] > 0) & (-vn > jnp.maximum(f[2], threshold)))
+
+    def propagate(v):
+        vc, el_o, el_p = lax.fori_loop(0, BOUNCE_PASSES, one_pass, (v,) + no)
+        return vc, (el_o, el_p)
+
+    vc, elastic = lax.cond(fast & (e > 0), propagate, lambda v: (v, no), v)
+    return tuple(None if f is None else (jnp.where(el, jnp.maximum(vn, 0), 0), el)
+                 for f, vn, el in zip((obs, pairs), normal_speeds(vc), elastic))
 
 
 def tolerance(scale):
@@ -651,24 +756,25 @@ def magnitude(a):
 def _obstacle_geometry(cs: ContactSystem, x, v, h):
     """(n [Q, dim, *view], C, C_n, hit, impact, toi, tol [Q, *view]) of every particle against every plane,
     then every sphere, for particles moving at `v` over the step; tol is `_gap`'s rounding tolerance."""
-    ct, dim, nview = cs.ct, x.shape[0], x.ndim - 1
-    out = []
+    dim, nview = x.shape[0], x.ndim - 1
     r = cs.radius[0]
     size = magnitude(x) + r
-    for p in range(ct.n_planes):
-        nrm = jnp.broadcast_to(cs.plane_normal[p].reshape((dim,) + (1,) * nview), x.shape)
-        C = dot(nrm, x) - cs.plane_offset[p] - r
-        tol = tolerance(size + jnp.abs(cs.plane_offset[p]))
-        vn = dot(nrm, v)
-        Ci = _gap(C, tol)                  # as in `_swept`: the impact is when the gap reaches -tol
-        impact = (Ci > 0) & (Ci + h * vn < 0)
-        out.append((nrm, C, C, impact, impact, jnp.where(impact, Ci / jnp.where(impact, -vn, 1), 0), tol))
-    for s in range(ct.n_spheres):
+
+    def one(_, q, sphere, row):
+        if not sphere:
+            nrm = jnp.broadcast_to(cs.plane_normal[q].reshape((dim,) + (1,) * nview), x.shape)
+            C = dot(nrm, x) - cs.plane_offset[q] - r
+            tol = tolerance(size + jnp.abs(cs.plane_offset[q]))
+            vn = dot(nrm, v)
+            Ci = _gap(C, tol)                  # as in `_swept`: the impact is when the gap reaches -tol
+            impact = (Ci > 0) & (Ci + h * vn < 0)
+            return None, (nrm, C, C, impact, impact, jnp.where(impact, Ci / jnp.where(impact, -vn, 1), 0), tol)
+        s = q - cs.ct.n_planes
         c = cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
         R = cs.sphere_radius[s] + r
         tol = tolerance(size + magnitude(c) + R)
-        out.append(_swept(x - c, v, R, h, tol) + (tol,))
-    return tuple(jnp.stack(a) for a in zip(*out))
+        return None, _swept(x - c, v, R, h, tol) + (tol,)
+    return each_obstacle(cs.ct, one, None)[1]
 
 
 def _first_impacts(ct, obs, pairs, n_particles, index=None):
@@ -717,34 +823,47 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None, slop=0.0):
         pairs = pairs[:3] + (pairs[3] & live, pairs[4] & live, pairs[5], tol)
     obs, pairs = _first_impacts(ct, obs, pairs, xf.shape[1], index)
 
-    def finish(geometry, vn0, vn1, winv, k, distance, window):
+    def prepare(geometry, vn0, vn1, winv, k, distance, window):
         n, C, C_n, _, impact, toi, tol = geometry
         toi = jnp.where(impact, toi, 0)
         gap = _gap(C, tol)
         s = slop * distance
-        target, target_c = _targets(gap, C_n, vn0, vn1, impact, toi, cs, beta, h, PUSH_SLOPS * s)
         # Warm-started: touching, impacts, and pairs within the slop of touching either way (a disc of a pile that
         # lifts off its neighbour by less than the slop keeps the impulse it leant on it with; measured in
         # docs/contacts.md). Obstacles keep gap <= 0: warm-starting those within the slop as well brought the pile
         # to rest sooner (0.003 against 0.018 m/s at 8 s) but the float32 drape's gradients 1.9% off float64.
         warm = impact | (gap <= (s if window else 0))
-        return Rows(n, target, k, winv, toi, gap, target_c, near=C <= tol, warm=warm)
+        f = Rows(n, None, k, winv, toi, gap, None, near=C <= tol, warm=warm)
+        # the impact propagation's view of the row (`chain_bounces`): the approach speed it must exceed to close the
+        # gap within the step (0 for impacts and rows touching within rounding; none for a separated row that
+        # approaches and closes it already but is no impact: one that touches only at the end of the step, or a
+        # later impact `_first_impacts` cleared), and the external forces' share up to the impact
+        reach = jnp.maximum(C_n, 0) / h
+        reach = jnp.where(impact | (C <= tol), 0, jnp.where((vn0 >= 0) | (-vn0 < reach), reach, jnp.inf))
+        return f, (C_n, vn0, vn1, impact, PUSH_SLOPS * s), (n, k, reach, (vn1 - vn0) * toi / h)
+
+    def finish(prep, bounce):
+        f, (C_n, vn0, vn1, impact, push_slop) = prep
+        target, target_c = _targets(f.gap, C_n, vn0, vn1, impact, f.toi, cs, beta, h, bounce, push_slop)
+        return f._replace(target=target, target_c=target_c)
 
     if obs is not None:
         n = obs[0]
         winv = jnp.broadcast_to(w[0], obs[1].shape)
         nd = jnp.moveaxis(n, 1, 0)                     # [dim, Q, *view]
-        obs = finish(obs, dot(nd, v0[:, None]), dot(nd, v[:, None]), winv, L.safe_reciprocal(winv), cs.radius, False)
-        if xf.shape[1] >= SELECT_FROM:
-            obs = obs._replace(sel=select_obstacles(obs, vf, h))
+        obs = prepare(obs, dot(nd, v0[:, None]), dot(nd, v[:, None]), winv, L.safe_reciprocal(winv), cs.radius, False)
     if pairs is not None:
         n = pairs[0]
         winv = wf[ia] + wf[ja]
         k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype)
         vn0, vn1 = (dot(n, a[:, ja] - a[:, ia]) for a in (v0f, vf))
-        pairs = finish(pairs, vn0, vn1, winv, k, cs.radius_flat[ia] + cs.radius_flat[ja], True)
-        if index is not None:
-            pairs = pairs._replace(i=ia, j=partners, slots=sparse_slots(partners))
+        pairs = prepare(pairs, vn0, vn1, winv, k, cs.radius_flat[ia] + cs.radius_flat[ja], True)
+    bounces = chain_bounces(cs, w, v0, *(None if f is None else f[2] for f in (obs, pairs)), partners=partners)
+    obs, pairs = (None if f is None else finish(f[:2], b) for f, b in zip((obs, pairs), bounces))
+    if obs is not None and xf.shape[1] >= SELECT_FROM:
+        obs = obs._replace(sel=select_obstacles(obs, vf, h))
+    if pairs is not None and index is not None:
+        pairs = pairs._replace(i=ia, j=partners, slots=sparse_slots(partners))
     return obs, pairs
 
 
@@ -767,7 +886,8 @@ def speculative_rows(cs: ContactSystem, w, x, v, h, partners=None, depth=SPECULA
         geo = _obstacle_geometry(cs, x, v, h)
         n, C_n = geo[0], geo[2]
         r = cs.radius[0]
-        reach = jnp.stack([jnp.zeros_like(r)] * ct.n_planes + [cs.sphere_radius[s] + r for s in range(ct.n_spheres)])
+        reach = jnp.concatenate([jnp.zeros((ct.n_planes,) + r.shape, r.dtype),
+                                 cs.sphere_radius.reshape((-1,) + (1,) * r.ndim) + r])      # planes, then spheres
         winv = jnp.broadcast_to(w[0], C_n.shape)
         sphere = (jnp.arange(ct.n_obstacles) >= ct.n_planes).reshape((-1,) + (1,) * (C_n.ndim - 1))
         k = L.safe_reciprocal(winv) * sphere.astype(winv.dtype)
@@ -842,11 +962,12 @@ def pair_total(ct, w, P, sign_i, index=None, partners=None):  # noqa: D401
 
 
 # ---- rows at position level (XPBD, Penalty) and of XPBD's velocity pass ---------------------------------
-def obstacle_gap(cs: ContactSystem, q: int, p):
-    """(unit normal [dim, *view], gap [*view]) of every particle at `p` against obstacle q (planes first)."""
+def obstacle_gap(cs: ContactSystem, q, p, sphere: Optional[bool] = None):
+    """(unit normal [dim, *view], gap [*view]) of every particle at `p` against obstacle q (planes first).
+    A traced q (`each_obstacle`) comes with `sphere`, whether it is a sphere."""
     dim, nview = p.shape[0], p.ndim - 1
     r = cs.radius[0]
-    if q < cs.ct.n_planes:
+    if not (q >= cs.ct.n_planes if sphere is None else sphere):
         nrm = jnp.broadcast_to(cs.plane_normal[q].reshape((dim,) + (1,) * nview), p.shape)
         return nrm, dot(nrm, p) - cs.plane_offset[q] - r
     s = q - cs.ct.n_planes
@@ -855,14 +976,15 @@ def obstacle_gap(cs: ContactSystem, q: int, p):
     return nrm, dist - cs.sphere_radius[s] - r
 
 
-def obstacle_moved_gap(cs: ContactSystem, q: int, x, dp, ahead=None, hold=0.0):
+def obstacle_moved_gap(cs: ContactSystem, q, x, dp, ahead=None, hold=0.0, sphere: Optional[bool] = None):
     """(unit normal, gap, floor) of every particle against obstacle q at positions x + dp, x the start of a
-    position-level substep and dp the displacement since (`overlap_normal`, with the predicted one `ahead`, holding start overlaps deeper than
-    CONTACT_SLOP r; a plane's normal is
-    its own). The gap is computed as (gap at x) + n . dp, so a displacement below an ulp of x still counts."""
+    position-level substep and dp the displacement since (`overlap_normal`, with the predicted one `ahead`,
+    holding start overlaps deeper than `hold`, at least CONTACT_SLOP r; a plane's normal is its own). The gap is
+    computed as (gap at x) + n . dp, so a displacement below an ulp of x still counts. q and `sphere` as for
+    `obstacle_gap`."""
     dim, nview = x.shape[0], x.ndim - 1
     r = cs.radius[0]
-    if q < cs.ct.n_planes:
+    if not (q >= cs.ct.n_planes if sphere is None else sphere):
         nrm = jnp.broadcast_to(cs.plane_normal[q].reshape((dim,) + (1,) * nview), x.shape)
         C0 = dot(nrm, x) - cs.plane_offset[q] - r
         return nrm, C0 + dot(nrm, dp), jnp.where(C0 < -jnp.maximum(hold, CONTACT_SLOP * r), C0, 0)
@@ -871,42 +993,37 @@ def obstacle_moved_gap(cs: ContactSystem, q: int, x, dp, ahead=None, hold=0.0):
     return overlap_normal(x - c, dp, cs.sphere_radius[s] + r, ahead, jnp.maximum(hold, CONTACT_SLOP * r))
 
 
-def obstacle_size(cs: ContactSystem, q: int):
+def obstacle_size(cs: ContactSystem, q, sphere: Optional[bool] = None):
     """A size of obstacle q's parameters for a rounding tolerance (`tolerance`) at position level: the sum of
-    the absolute components of a plane's normal, or of a sphere's centre."""
-    if q < cs.ct.n_planes:
+    the absolute components of a plane's normal, or of a sphere's centre (q and `sphere` as for `obstacle_gap`)."""
+    if not (q >= cs.ct.n_planes if sphere is None else sphere):
         return jnp.sum(jnp.abs(cs.plane_normal[q]))
     return jnp.sum(jnp.abs(cs.sphere_centre[q - cs.ct.n_planes]))
 
 
-def _bounce_target(cs: ContactSystem, vn_before):
-    """Restitution target of the velocity pass: max(-e vn_before, 0), e = 0 at or below the threshold."""
-    e = jnp.where(jnp.abs(vn_before) > cs.threshold, cs.restitution, 0)
-    return jnp.maximum(-e * vn_before, 0)
-
-
 def velocity_rows(cs: ContactSystem, w, p, v_before, imp: Impulses, partners=None):
     """Velocity rows (obstacle Rows or None, pair Rows or None) at the end of the position solve: normals and
-    gaps at `p`, restitution targets from `v_before` (start of the substep, after gravity), and effective
-    masses only for contacts that pushed in this substep (lam_n > 0; the others get k = 0, no impulse). A grid
-    model's pair rows are its `partners`' slots [n, K]."""
+    gaps at `p`, restitution targets from `v_before` (start of the substep, after gravity) by the impact
+    propagation of every solver (`chain_bounces`), and effective masses only for contacts that pushed in this
+    substep (lam_n > 0; the others get k = 0, no impulse). A grid model's pair rows are its `partners`' slots
+    [n, K]."""
     ct, dim = cs.ct, p.shape[0]
     obs = pairs = None
     if ct.n_obstacles:
-        ns, Cs = zip(*(obstacle_gap(cs, q, p) for q in range(ct.n_obstacles)))
-        n, C = jnp.stack(ns), jnp.stack(Cs)
+        n, C = each_obstacle(ct, lambda c, q, sphere, row: (c, obstacle_gap(cs, q, p, sphere=sphere)), None)[1]
         winv = jnp.broadcast_to(w[0], C.shape)
         k = L.safe_reciprocal(winv) * (imp.obs_n > 0).astype(C.dtype)
-        obs = Rows(n, _bounce_target(cs, dot(jnp.moveaxis(n, 1, 0), v_before[:, None])), k, winv, jnp.zeros_like(C), C)
+        obs = Rows(n, None, k, winv, jnp.zeros_like(C), C)
     if ct.n_pairs or ct.has_grid:
-        pf, vf, wf = p.reshape(dim, -1), v_before.reshape(dim, -1), w.reshape(-1)
+        pf, wf = p.reshape(dim, -1), w.reshape(-1)
         ia, ja, valid, _ = pair_slots(ct, pf.shape[1], partners)
         dist, n = direction(pf[:, ja] - pf[:, ia])
         C = dist - cs.radius_flat[ia] - cs.radius_flat[ja]
         winv = wf[ia] + wf[ja]
         k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype) * (imp.pair_n > 0).astype(C.dtype)
-        vn = dot(n, vf[:, ja] - vf[:, ia])
-        pairs = Rows(n, _bounce_target(cs, vn), k, winv, jnp.zeros_like(C), C)
+        pairs = Rows(n, None, k, winv, jnp.zeros_like(C), C)
         if partners is not None:
             pairs = pairs._replace(i=ia, j=partners)
-    return obs, pairs
+    bounces = chain_bounces(cs, w, v_before, *(None if f is None else (f.n, f.k, 0 * f.k, 0 * f.k)
+                                               for f in (obs, pairs)), partners=partners)
+    return tuple(None if f is None else f._replace(target=b[0]) for f, b in zip((obs, pairs), bounces))

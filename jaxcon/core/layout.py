@@ -193,9 +193,10 @@ class SetRow:
     rope = None
     unrolled = None
 
-    def __init__(self, idx, real, block):
+    def __init__(self, idx, real, block, hub=None):
         self.i_idx, self.real = _Mask(idx), _Mask(real)
         self.generic, self.all_rope, self.set_block = block.generic, block.all_rope, block.set_block
+        self.hub_slot, self.spokes = (None if hub is None else _Mask(hub)), block.spokes
 
     @property
     def has_rope(self) -> bool:
@@ -264,12 +265,13 @@ def each_colour(block, fn, carry, rows):
     if getattr(block, "unrolled", None) is not None:
         return fn(carry, block, rows)
     if getattr(block, "generic", None) is not None:     # a constraint set: its colours [C, W], in order
-        xs = (np.moveaxis(block.i_idx.array, -2, 0), block.real.array,
+        hub = None if block.hub_slot is None else np.moveaxis(block.hub_slot.array, -2, 0)
+        xs = (np.moveaxis(block.i_idx.array, -2, 0), block.real.array, hub,
               jax.tree.map(lambda a: jnp.moveaxis(a, -2, 0), rows))
 
         def set_body(carry, x):
-            idx, real, row = x
-            return fn(carry, SetRow(idx, real, block), row)
+            idx, real, hub, row = x
+            return fn(carry, SetRow(idx, real, block, hub), row)
 
         carry, out = lax.scan(set_body, carry, xs)
         return carry, jax.tree.map(lambda a: jnp.moveaxis(a, 0, -2), out)
@@ -429,7 +431,12 @@ def block_solve(topo: Topology, block, f, rhs, alpha=0.0):
     position), (I + w_p N^T D^-1 N) u = w_p N^T D^-1 rhs is a dim x dim system per hub, and dlam = D^-1 (rhs -
     N u). D is regularised by max(1e-6, 1e3 eps) (w_p + w_o), which keeps a row to a fixed particle (w_o = 0)
     solvable; the sweeps converge to the unregularised solution all the same (an inexact block solve changes
-    how fast Gauss-Seidel converges, not where to)."""
+    how fast Gauss-Seidel converges, not where to).
+
+    A constraint set's stars (`Block.hub_slot`, `topology.set_stars`) are solved the same way from their rows'
+    Jacobians (`_set_star_solve`); a set's other rows, rhs * f.k."""
+    if getattr(block, "hub_slot", None) is not None:
+        return _set_star_solve(block, f, rhs, alpha)
     if not getattr(block, "star", False):
         return rhs * f.k
     dim = f.n.shape[0]
@@ -444,9 +451,39 @@ def block_solve(topo: Topology, block, f, rhs, alpha=0.0):
     return (rhs - jnp.sum(f.n * u[..., None], axis=0)) * inv_d
 
 
+def _set_star_solve(block, f, rhs, alpha=0.0):
+    """`block_solve` for a constraint set's stars: rows [..., H * S] (`topology.Topology._set_star_block`), f a
+    `rows.SetFrame`. A star's rows share only their hub p, so J M^-1 J^T = D + w_p N N^T, N [S, dim] the rows'
+    Jacobians at the hub and D = diag(sum over their other particles q of w_q |J_q|^2, + alpha): the rods' star
+    solve with N for the unit normals. Rows with no effective mass (f.k = 0: padding, inactive) take no part and
+    get 0."""
+    S = block.spokes
+    hub = block.hub_slot.array.astype(rhs.dtype)                        # [k, ..., H S]
+    live = f.k > 0
+    jj = jnp.sum(f.J * f.J, axis=0)                                     # [k, ..., H S]
+    Jh = jnp.sum(f.J * hub, axis=1)                                     # [dim, ..., H S]
+    wp = jnp.sum(f.w * hub, axis=0)
+    reg = max(1e-6, 1e3 * float(jnp.finfo(rhs.dtype).eps))
+    d = jnp.sum((1 - hub) * f.w * jj, axis=0) + alpha
+    inv_d = jnp.where(live, safe_reciprocal(d + reg * f.s), 0)
+
+    def stars(a):                                                       # [..., H S] -> [..., H, S]
+        return a.reshape(a.shape[:-1] + (a.shape[-1] // S, S))
+    N, inv_d, r = stars(Jh), stars(inv_d), stars(rhs)
+    wh = stars(wp)[..., 0]                                              # the hub's (spoke 0: real, or padding)
+    a = N * inv_d
+    g = jnp.sum(a * r, axis=-1)
+    dim = N.shape[0]
+    M = [[(a_ == b_) + wh * jnp.sum(a[a_] * N[b_], axis=-1) for b_ in range(dim)] for a_ in range(dim)]
+    u = wh * _small_solve(M, g)
+    return ((r - jnp.sum(N * u[..., None], axis=0)) * inv_d).reshape(rhs.shape)
+
+
 def _small_solve(M, g):
     """Solve M u = g for a symmetric positive definite 2 x 2 or 3 x 3 M given as nested lists of [H] arrays, g
     [dim, H], by Cramer's rule (elementwise, so it fuses; det M >= 1 here, M being I plus a PSD matrix)."""
+    if len(M) == 1:
+        return g / M[0][0]
     if len(M) == 2:
         (a, b), (_, d) = M
         det = a * d - b * b

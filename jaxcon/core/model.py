@@ -95,8 +95,8 @@ class Model:
         dtype = jnp.result_type(self.inv_mass)
         c = self.contact
         contacts = "" if c is None else ", contacts: " + ", ".join(
-            plural(k, word) for k, word in ((c.n_planes, "plane"), (c.n_spheres, "sphere"), (c.n_pairs, "pair"))
-            if k)
+            [plural(k, word) for k, word in ((c.n_planes, "plane"), (c.n_spheres, "sphere"), (c.n_pairs, "pair"))
+             if k] + ([f"a neighbour grid of {c.grid_k} per particle"] if c.grid_k else []))
         return (f"Model({plural(t.n, 'particle')}{fixed}, {plural(t.m, 'constraint')}"
                 f"{f' ({kinds})' if kinds else ''}, {plural(t.n_colours, 'colour')}{contacts}, dim={t.dim}, "
                 f"dtype={dtype})")
@@ -134,11 +134,24 @@ def _check_sets(owner, model, prefix) -> None:
     if not isinstance(cons, tuple) or len(cons) != len(t.sets) or not all(isinstance(c, Constraint) for c in cons):
         raise ValueError(f"{owner}: `{prefix}constraints` must be the {len(t.sets)} jc.Constraint sets the model was "
                          f"built with, got {type(cons).__name__} of {len(cons) if isinstance(cons, tuple) else '?'}")
-    for c, info in zip(cons, t.sets):
+    for b, (c, info) in enumerate(zip(cons, t.sets)):
+        try:
+            check_values(owner, f"{prefix}constraints[{b}].compliance", c.compliance, nonneg=True)
+            for key, value in c.params.items():
+                check_values(owner, f"{prefix}constraints[{b}].params[{key!r}]", value)
+        except ValueError as e:
+            raise ValueError(f"{e} (constraint set {info.name!r})") from None
         if c.m != info.m or c.arity != info.k or c.unilateral != info.unilateral or not np.array_equal(
                 c.particles.array, info.particles):
             raise ValueError(f"{owner}: `{prefix}constraints` set {info.name!r} differs from the one the model was "
                              "built with (particles or kind); build the model again to change them")
+        if c.name != info.name:
+            raise ValueError(f"{owner}: `{prefix}constraints` set {info.name!r} is named {c.name!r}; a model's sets keep "
+                             "the names they were built with (repr, errors and `jc.fit` use them)")
+        if info.fn is not None and c.fn is not info.fn:
+            raise ValueError(f"{owner}: `{prefix}constraints` set {info.name!r} has another `fn` "
+                             f"({getattr(c.fn, '__name__', c.fn)!r}, built with "
+                             f"{getattr(info.fn, '__name__', info.fn)!r}); build the model again to change a kind")
 
 
 def _check_contact_leaves(owner, model, prefix) -> None:
@@ -395,8 +408,8 @@ def build(
         piece within contact distance here, which needs concrete `positions` and `radius`: self-collision), "grid"
         (the same pairs, always on the neighbour grid; True uses it above 256 particles), or a list of (i, j)
         pairs, exactly those (docs/contacts.md). Every contact solver steps a grid model, with substeps.
-      max_neighbours: the grid's capacity, partners kept per particle (static int >= 1; default 8 in 2-D,
-        16 in 3-D). Candidates beyond it are counted in `Trajectory.contact_overflow` and `jc.diagnose`.
+      max_neighbours: the grid's capacity, partners kept per particle (static int >= 1, capped at the number of
+        particles; default 8 in 2-D, 16 in 3-D). Candidates beyond it are counted in `Trajectory.contact_overflow` and `jc.diagnose`.
       planes: [(normal, offset), ...]: particles stay in normal . x >= offset + radius (normal normalised).
       spheres: [(centre, R), ...]: static spheres of radius R > 0 every particle stays outside of.
       friction, restitution: Coulomb mu >= 0 and e in [0, 1] of every contact (default 0 and 0).
@@ -425,7 +438,7 @@ def build(
     v = _velocities(velocities, x)
     g = _gravity("build", gravity, dim, dtype)
     topo = _topology(n, dim, i, j, is_rope, colouring, grid_shape, layout, is_fixed,
-                     tuple(SetInfo(c.particles.array, c.unilateral, c.name) for c in sets))
+                     tuple(SetInfo(c.particles.array, c.unilateral, c.name, c.fn) for c in sets))
     model = Model(inv_mass, rest, g, topo, constraints=tuple(sets))
     return _with_contacts(model, State(x, v, jnp.zeros(m, dtype)), contact_pairs_, has_contacts, grid=(grid_k, skipped),
                           radius=radius, planes=planes, spheres=spheres, friction=friction, restitution=restitution,
@@ -481,7 +494,9 @@ def _collisions(collide, max_neighbours, n, dim, rods, sets, x, radius, fixed):
     pairs that never collide [m, 2] (`_skipped`))."""
     joined = _skipped(collide, rods, sets, x, radius, n, fixed)
     pairs = contact_pairs(collide, n, joined)
-    grid_k = check_max_neighbours(max_neighbours, collide, dim) if uses_grid(collide, n) else 0
+    # a particle has at most n - 1 partners: a larger capacity only costs memory and compile time (K = 1e4 with 20
+    # particles took 70 s to compile), so it is capped at n
+    grid_k = min(check_max_neighbours(max_neighbours, collide, dim), n) if uses_grid(collide, n) else 0
     if max_neighbours is not None and not grid_k:
         check_max_neighbours(max_neighbours, collide, dim)
     return pairs, grid_k, joined
@@ -661,8 +676,9 @@ def _constraint_sets(constraints, x, fixed, dtype) -> list:
     """`build`'s constraint sets, checked against the model (n particles, `fixed`, dim) and with their floating
     leaves in the model's dtype; names made unique."""
     n, dim = x.shape
-    out, names = [], {}
-    for c in flatten_sets(constraints):
+    out, sets = [], flatten_sets(constraints)
+    names = _unique_names([c.name for c in sets])
+    for c, name in zip(sets, names):
         p = c.particles.array
         bad = (p < 0) | (p >= n)
         if bad.any():
@@ -685,11 +701,40 @@ def _constraint_sets(constraints, x, fixed, dtype) -> list:
                              f"got {getattr(out_shape, 'shape', out_shape)}")
         if c.grad is not None:
             _check_grad(c, dim, dtype, one)
-        name = c.name if c.name not in names else f"{c.name}_{names[c.name]}"
-        names[c.name] = names.get(c.name, 0) + 1
         cast = {k: jnp.asarray(v).astype(dtype) if jnp.issubdtype(jnp.result_type(v), jnp.floating) else v
                 for k, v in c.params.items()}
+        _check_finite_rows(c, name, x, cast)
         out.append(c.replace(params=cast, compliance=jnp.asarray(c.compliance).astype(dtype), name=name))
+    return out
+
+
+def _check_finite_rows(c, name, x, params) -> None:
+    """Refuse a set with a row whose C is not finite at the positions it is built at (where those and its
+    params are known now): such a row would be inactive from the first step, silently."""
+    if concrete(x) is None or any(concrete(v) is None for v in params.values()):
+        return
+    C = np.asarray(jax.vmap(lambda idx, p: c.fn(x[idx], p))(jnp.asarray(c.particles.array), params))
+    bad = ~np.isfinite(C)
+    if bad.any():
+        r = int(np.argmax(bad))
+        raise ValueError(f"build: constraint set {name!r}: `fn` is {C[r]} at `positions` for `particles[{r}]` = "
+                         f"{c.particles.array[r].tolist()} ({int(bad.sum())} of {c.m} rows not finite); a row whose "
+                         "C is not finite is inactive, so this constraint would never act")
+
+
+def _unique_names(names) -> list:
+    """Each set's name, unique: a name's first set keeps it, a repeat becomes "<name>_<k>" with the smallest
+    k >= 1 that no set is named (so "d", "d", "d_1" give "d", "d_2", "d_1")."""
+    given, taken, out = set(names), set(), []
+    for name in names:
+        new, k = name, 1
+        while new in taken:
+            new = f"{name}_{k}"
+            while new in given or new in taken:
+                k += 1
+                new = f"{name}_{k}"
+        taken.add(new)
+        out.append(new)
     return out
 
 

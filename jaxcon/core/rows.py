@@ -205,7 +205,9 @@ def solve(topo, blk, f, rhs, lam, g):
     """The multiplier changes of one colour's rows with right-hand side `rhs` (rel + bias): `layout.block_solve`,
     or for a set's compliant rows (`g`: their `Spring`, g = alpha / h^2) (rhs - g lam) / (J M^-1 J^T + g), the
     implicit spring (XPBD's update at velocity level: at rest, C = alpha * force; its warm start:
-    `solvers.common.warm_rows`)."""
+    `solvers.common.warm_rows`); a set's stars solve their compliant rows together, g on their diagonal."""
     if g is None:
         return L.block_solve(topo, blk, f, rhs)
+    if getattr(blk, "hub_slot", None) is not None:
+        return L.block_solve(topo, blk, f, rhs - g.g * lam, g.g)
     return (rhs - g.g * lam) * g.inv

@@ -24,6 +24,7 @@ def _check_call(owner, model, state, solver, dt, steps=None):
         raise TypeError(f"{owner}: `solver` must be a jaxcon solver (e.g. jc.PGS()), got {type(solver).__name__}")
     check_x64(owner, model, state)
     check_model(owner, model, "model.")
+    check_solver(owner, solver)
     check_state(owner, model, state)
     check_dt(owner, dt, _dtype(state), getattr(solver, "substeps", 1))
     if steps is not None:
@@ -35,6 +36,18 @@ def _check_call(owner, model, state, solver, dt, steps=None):
     warn = getattr(solver, "_check_stability", None)
     if warn is not None:
         warn(owner, model, dt)
+
+
+def check_solver(owner, solver):
+    """The solver's own checks (its `__post_init__`) run again on its leaves where they are known now: a solver
+    rebuilt from leaves (`jax.tree.map`, an optimiser's update) bypasses its constructor."""
+    post = getattr(solver, "__post_init__", None)
+    if post is None:
+        return
+    try:
+        post()
+    except ValueError as e:
+        raise ValueError(f"{owner}: `solver`: {e}") from None
 
 
 def check_x64(owner, model, state):

@@ -29,7 +29,7 @@ position -> user particle) and ``pos`` (its inverse) convert.
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 
@@ -97,6 +97,40 @@ def star_colouring(i: np.ndarray, j: np.ndarray, n: int, fixed=None) -> tuple[np
     rest = star < 0
     colour[rest] = greedy_colouring(i[rest], j[rest], n, fixed)
     return star, colour
+
+
+def set_stars(particles: np.ndarray, n: int, fixed=None) -> list:
+    """The hubs of a constraint set (rows `particles` [m, k]): [(hub, its rows)], the set's stars. As for rods
+    (`star_colouring`): free particles in at least `STAR_MIN_DEGREE` rows, most rows first, each take the rows at
+    them that no earlier hub took and that share no free particle but the hub with the rows taken before (a row
+    that holds the hub twice stays outside), and are a star where they are at least `STAR_MIN_DEGREE` rows. A
+    star's rows share only the hub, so their J M^-1 J^T is a diagonal plus the hub's rank-dim term and is solved
+    exactly by one dim x dim system (`layout.block_solve`). Rows that share other particles as well (a cloth's
+    bending hinges: up to 12 at a particle, but never 9 that share only it) stay rows of the set's colours."""
+    rows = np.asarray(particles, np.int64)
+    m = len(rows)
+    free = np.ones(n, bool) if fixed is None else ~np.asarray(fixed, bool)
+    if m < STAR_MIN_DEGREE:
+        return []
+    srt = np.sort(rows, axis=1)
+    first = np.ones(srt.shape, bool)
+    first[:, 1:] = srt[:, 1:] != srt[:, :-1]
+    at = np.bincount(srt[first], minlength=n)                   # rows at each particle
+    hubs = [int(p) for p in np.argsort(-at, kind="stable") if at[p] >= STAR_MIN_DEGREE and free[p]]
+    taken = np.zeros(m, bool)
+    out = []
+    for p in hubs:
+        chosen, used = [], set()
+        for r in np.flatnonzero(np.any(rows == p, axis=1) & ~taken).tolist():
+            others = {int(q) for q in rows[r] if q != p and free[q]}
+            if int(np.sum(rows[r] == p)) != 1 or others & used:
+                continue
+            chosen.append(r)
+            used |= others
+        if len(chosen) >= STAR_MIN_DEGREE:
+            taken[chosen] = True
+            out.append((p, np.asarray(chosen, np.int64)))
+    return out
 
 
 def check_colouring(i: np.ndarray, j: np.ndarray, colour: np.ndarray, n: int, fixed=None) -> None:
@@ -205,6 +239,8 @@ class Block:
     real: Optional[StaticArray] = None   # flat), src [C, W] user constraint indices (m: padding), real [C, W]
     unrolled: Optional["SetColour"] = None   # a set's colour of its own (shape (size,), i_idx [k, size], src [size])
     set_block: Optional[int] = None      # a set's block: its index among the set blocks (`System.sets`)
+    hub_slot: Optional[StaticArray] = None   # a set's stars (`Topology._set_star_block`): bool [k, C, H * S], the
+    spokes: int = 0                      # slot of each row that holds its star's hub; S, the spokes of a star
 
     @property
     def strided(self) -> bool:
@@ -222,6 +258,7 @@ class SetInfo:
     particles: np.ndarray
     unilateral: bool
     name: str
+    fn: Any = None      # the set's `fn`: `Model.replace` refuses a set of another kind
 
     @property
     def m(self) -> int:
@@ -613,7 +650,9 @@ class Topology:
         colour by colour in a scan (`layout.each_colour`); the others get a block per colour (`Block.unrolled`),
         read and written through strided boxes where its rows form them (`SetColour`), else gathers. Such a set
         takes `lattice_colouring` where every one of its colours is then a box and it needs no more colours than
-        the greedy one."""
+        the greedy one. A set's hubs (`set_stars`) come first, as one more table of their own (`_set_star_block`),
+        and the set's other rows are laid out as above."""
+        self.set_hubs = []                       # (set index, hub (user index), its rows) per star of a set
         if not self.sets:
             return
         to_internal = np.arange(self.n) if self.pos is None else np.asarray(self.pos)
@@ -623,12 +662,25 @@ class Topology:
         first, offset, n_set_blocks = self.m_pairs, self.m_pairs, 0
         for s_id, info in enumerate(self.sets):
             internal = to_internal[info.particles]
-            colour = greedy_colouring_any(info.particles, self.n, self.fixed)
+            rest = np.arange(info.m)
+            stars = set_stars(info.particles, self.n, self.fixed)
+            if stars:                       # the set's stars first: one block, swept star colour by star colour
+                blk, rows = self._set_star_block(info, internal, stars, offset, first, s_id, n_set_blocks)
+                blocks.append(blk)
+                perm.append(rows.astype(np.int64))
+                offset, n_set_blocks = offset + blk.size, n_set_blocks + 1
+                self.set_hubs += [(s_id, p, ks) for p, ks in stars]
+                rest = np.setdiff1d(rest, np.concatenate([ks for _, ks in stars]))
+            if not len(rest):
+                first += info.m
+                continue
+            parts, internal = info.particles[rest], internal[rest]
+            colour = greedy_colouring_any(parts, self.n, self.fixed)
             groups = None
             if self._unrolls(np.bincount(colour)):
                 # on the user's grid positions: the parity split (`pos`) permutes a row, so translates there are
                 # not translates internally; the boxes are checked on the internal positions
-                lattice = (lattice_colouring(info.particles, self.view, int(colour.max()) + 1) if info.k > 1
+                lattice = (lattice_colouring(parts, self.view, int(colour.max()) + 1) if info.k > 1
                            else None)
                 tried = None if lattice is None else self._set_colours(internal, lattice, fixed)
                 if tried is not None and all(c.boxes is not None for c, _ in tried):
@@ -637,7 +689,7 @@ class Topology:
                     groups = self._set_colours(internal, colour, fixed)
             if groups is not None:                          # one block per colour, read and written directly
                 for sc, rows in groups:
-                    src = (first + rows).astype(np.int32)
+                    src = (first + rest[rows]).astype(np.int32)
                     blocks.append(Block(offset, sc.size, (sc.size,), None, None, sc.idx, None, StaticArray(src),
                                         None, info.unilateral, flat=StaticArray(np.arange(sc.size, dtype=np.int32)),
                                         generic=s_id, real=StaticArray(np.ones(sc.size, bool)), unrolled=sc,
@@ -654,22 +706,60 @@ class Topology:
                 rows = np.flatnonzero(colour == c)
                 idx[c, :len(rows)] = internal[rows]
                 idx[c, len(rows):] = internal[rows[0]]      # padding: a real row, masked
-                src[c, :len(rows)] = first + rows
+                src[c, :len(rows)] = first + rest[rows]
             real = src < self.m
             flat = np.flatnonzero(real.reshape(-1)).astype(np.int32)
-            blocks.append(Block(offset, info.m, (C, W), None, None, StaticArray(np.moveaxis(idx, -1, 0)), None,
+            blocks.append(Block(offset, len(rest), (C, W), None, None, StaticArray(np.moveaxis(idx, -1, 0)), None,
                                 StaticArray(src), None,
                                 info.unilateral, flat=StaticArray(flat), generic=s_id, real=StaticArray(real),
                                 set_block=n_set_blocks))
             n_set_blocks += 1
             perm.append(src.reshape(-1)[flat].astype(np.int64))
             first += info.m
-            offset += info.m
+            offset += len(rest)
         perm = np.concatenate(perm).astype(np.int32)
         inv_perm = np.argsort(perm).astype(np.int32)
         perm.setflags(write=False)
         inv_perm.setflags(write=False)
         self.blocks, self.perm, self.inv_perm = tuple(blocks), perm, inv_perm
+
+    def _set_star_block(self, info, internal, stars, offset, first, s_id, set_block):
+        """A set's stars (`set_stars`) as one block (Block, the user constraint indices of its rows in block order),
+        laid out as a set's table [C, H * S] (star colour; star by star, S spokes each, padded with a masked copy of
+        a real row): a colour's stars share no free particle (first fit, as the rods' stars). `hub_slot` [k, C,
+        H * S] marks each row's hub, false on padding; `layout.block_solve` solves each star's rows together."""
+        groups = [np.unique(info.particles[ks]) for _, ks in stars]
+        colour = _first_fit(groups, ~self.fixed)
+        C, H = int(colour.max()) + 1, int(np.bincount(colour).max())
+        S = max(len(ks) for _, ks in stars)
+        idx = np.zeros((C, H * S, info.k), np.int32)
+        src = np.full((C, H * S), self.m, np.int32)
+        hub = np.zeros((C, H * S, info.k), bool)
+        for c in range(C):
+            mine = [st for st, cc in zip(stars, colour) if cc == c]
+            idx[c] = internal[mine[0][1][0]]                         # padding: a real row, masked
+            for h, (p, ks) in enumerate(mine):
+                at = slice(h * S, h * S + len(ks))
+                idx[c, at], src[c, at], hub[c, at] = internal[ks], first + ks, info.particles[ks] == p
+        real = src < self.m
+        flat = np.flatnonzero(real.reshape(-1)).astype(np.int32)
+        blk = Block(offset, len(flat), (C, H * S), None, None, StaticArray(np.moveaxis(idx, -1, 0)), None,
+                    StaticArray(src), None, info.unilateral, flat=StaticArray(flat), generic=s_id,
+                    real=StaticArray(real), set_block=set_block, hub_slot=StaticArray(np.moveaxis(hub, -1, 0)),
+                    spokes=S)
+        return blk, src.reshape(-1)[flat]
+
+    def block_degree(self) -> np.ndarray:
+        """[n] (user order) how many blocks solved together meet at each particle: a constraint counts at each of
+        its particles, a star (rods' or a set's: `star_colouring`, `set_stars`) once at its hub."""
+        deg = np.bincount(np.concatenate([self.i, self.j] + [s.particles.reshape(-1) for s in self.sets]),
+                          minlength=self.n)
+        for k in np.unique(self.star[self.star >= 0]):
+            ks = np.flatnonzero(self.star == k)
+            deg[np.bincount(np.concatenate([self.i[ks], self.j[ks]])).argmax()] -= len(ks) - 1
+        for _, p, ks in self.set_hubs:
+            deg[p] -= len(ks) - 1
+        return deg
 
     def _unrolls(self, sizes) -> bool:
         """Whether a constraint set with colours of these sizes gets a block per colour: never in the compact
@@ -705,6 +795,8 @@ class Topology:
             kinds += f", {int(self.star.max()) + 1} hub stars"
         for info in self.sets:
             kinds += f", {info.m} {info.name}"
+        if self.set_hubs:
+            kinds += f", {len(self.set_hubs)} set hub stars"
         strided = sum(b.strided or (b.unrolled is not None and b.unrolled.boxes is not None) for b in self.blocks)
         if self.compact:
             tab = next(b for b in self.blocks if b.table)

@@ -42,7 +42,8 @@ class FitResult(NamedTuple):
                      the fitted rollout is finite and `jc.diagnose` does not flag it; no fitted value ran to a
                      bound of its transform (a log value at 0 or inf, or moved by over 1e8x; a logit value
                      within 1e-4 of its range from a bound); the errors left are not correlated from frame to
-                     frame (`residual_correlation` <= 0.5: what is left looks like noise, not a misfit).
+                     frame (`residual_correlation` <= 0.5: what is left looks like noise, not a misfit), or are
+                     those of exact data where there are too few frames to check that.
       window_states: the fitted start states of windows 1.. (multiple shooting), else None.
       reason:        why it stopped: "tolerance", "max_steps", "non-finite loss", "non-finite gradient" (a NaN
                      or inf gradient, or Levenberg-Marquardt Jacobian, at the last iterate: the fit stops there
@@ -65,7 +66,9 @@ class FitResult(NamedTuple):
       residual_correlation: the lag-1 correlation of the position errors from frame to frame (pooled over
                      particles, coordinates and trajectories): near 0 when what is left is measurement noise,
                      near 1 when the model misses the motion. Above 0.5 the fit is not converged ("misfit").
-                     None with fewer than 8 frames, or errors below 1e-5 of the observed motion (exact data).
+                     None with fewer than 7 frame-to-frame pairs over the recordings (8 frames of one), or errors
+                     below 1e-5 of the observed motion (exact data). With too few pairs and errors above that,
+                     the fit is not converged ("too few frames to check the fit").
     """
 
     model: Model
@@ -235,9 +238,14 @@ def _schedule(horizon, ob: _Obs, n_params: int) -> tuple:
             frames *= 2
         return tuple(out) + (T,)
     try:
-        hs = tuple(int(h) for h in horizon)
+        raw = np.asarray(horizon)
+        if raw.ndim != 1 or raw.dtype.kind not in "iuf":
+            raise TypeError
     except (TypeError, ValueError):
         raise ValueError(f"fit: `horizon` must be 'grow', 'full' or a list of step counts, got {horizon!r}") from None
+    if raw.dtype.kind == "f" and not np.all(np.isfinite(raw) & (raw == np.round(raw))):
+        raise ValueError(f"fit: `horizon` step counts must be whole numbers, got {horizon!r}")
+    hs = tuple(int(h) for h in raw)
     if not hs or any(h < 1 for h in hs) or any(b <= a for a, b in zip(hs, hs[1:])) or hs[-1] > T:
         raise ValueError(f"fit: `horizon` step counts must increase from >= 1 to at most the record's {T} steps, "
                          f"got {hs}")
@@ -732,7 +740,14 @@ def _failures(pset, ob, best_u, u0, diag, err, driven=False):
     hits = unc.at_bounds(pset, best_u["theta"], u0["theta"])
     if hits:
         failures.append("at a bound: " + "; ".join(hits))
-    corr = unc.residual_correlation(err, np.asarray(ob.obs, np.float64))
+    obs = np.asarray(ob.obs, np.float64)
+    corr = unc.residual_correlation(err, obs)
+    if unc.too_few_frames(err, obs):
+        failures.append(f"too few frames to check the fit: {unc.lag_pairs(err)} frame-to-frame pair(s) in "
+                        f"{err.shape[0]} x {err.shape[1]} observed frames (recordings x frames), the misfit check "
+                        f"needs {unc.MIN_LAG_PAIRS} (8 frames of one recording), and the errors left (RMS "
+                        f"{1e3 * np.sqrt(np.mean(err ** 2)):.3g} mm) are not those of exact data; observe more "
+                        "frames (and check that `observed` is [frames, particles, dim])")
     if corr is not None and corr > unc.MISFIT_CORRELATION:
         failures.append(f"misfit: the position errors (RMS {1e3 * np.sqrt(np.mean(err ** 2)):.3g} mm) are "
                         f"correlated from frame to frame ({corr:.2f}), not noise: the model does not explain the "

@@ -60,6 +60,10 @@ def _constraint_of(name, model):
         return None
     set_name, key = name.split(".", 1)
     sets = {c.name: c for c in getattr(model, "constraints", ())}
+    same = [c for c in getattr(model, "constraints", ()) if c.name == set_name]
+    if len(same) > 1:
+        raise ValueError(f"fit: parameter {name!r} is ambiguous: the model has {len(same)} constraint sets named "
+                         f"{set_name!r}; give the sets unique names")
     if set_name not in sets:
         raise ValueError(f"fit: unknown parameter {name!r}: the model has no constraint set {set_name!r} (its sets "
                          f"are {sorted(sets)})")

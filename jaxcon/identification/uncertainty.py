@@ -190,17 +190,39 @@ def state_gauge(pset, model, state_b, batched, frame0_observed):
     return np.stack(cols, 1) if cols else None
 
 
-def residual_correlation(err, obs):
-    """The lag-1 correlation of the position errors err [B, S, k, dim] from frame to frame, pooled: sum e_s e_s+1
-    / sum e_s^2. None with fewer than 8 frames, or when the errors are below 1e-5 of the observed motion (the RMS
-    of obs about its mean over the frames): exact data fitted to rounding."""
-    if err.shape[1] < 8:
-        return None
+#: The frame-to-frame pairs (over all recordings) the lag-1 correlation needs to tell noise from a misfit: those
+#: of one recording of 8 frames.
+MIN_LAG_PAIRS = 7
+
+
+def _exact(err, obs) -> bool:
+    """The errors are 0 or below 1e-5 of the observed motion (the RMS of obs about its mean over the frames):
+    exact data fitted to rounding."""
     motion = np.sqrt(np.mean((obs - obs.mean(axis=1, keepdims=True)) ** 2))
     ss = float(np.sum(err ** 2))
-    if not np.isfinite(ss) or ss <= 0 or np.sqrt(ss / err.size) < 1e-5 * motion:
+    return np.isfinite(ss) and (ss <= 0 or np.sqrt(ss / err.size) < 1e-5 * motion)
+
+
+def lag_pairs(err) -> int:
+    """The frame-to-frame pairs of err [B, S, k, dim], over all recordings: B (S - 1)."""
+    return int(err.shape[0] * max(err.shape[1] - 1, 0))
+
+
+def residual_correlation(err, obs):
+    """The lag-1 correlation of the position errors err [B, S, k, dim] from frame to frame, pooled: sum e_s e_s+1
+    / sum e_s^2. None with fewer than MIN_LAG_PAIRS (7) frame-to-frame pairs over the recordings, or for exact
+    data fitted to rounding (`_exact`)."""
+    ss = float(np.sum(err ** 2))
+    if lag_pairs(err) < MIN_LAG_PAIRS or not np.isfinite(ss) or _exact(err, obs):
         return None
     return float(np.sum(err[:, 1:] * err[:, :-1]) / ss)
+
+
+def too_few_frames(err, obs) -> bool:
+    """The misfit cannot be checked: fewer than MIN_LAG_PAIRS frame-to-frame pairs, and errors above the
+    exact-data level (with so few frames the lag-1 correlation does not tell noise from a misfit, and there is no
+    noise level to compare the RMS with)."""
+    return lag_pairs(err) < MIN_LAG_PAIRS and not _exact(err, obs)
 
 
 def warn_misfit(corr, err, stacklevel=2):

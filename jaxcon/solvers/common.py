@@ -7,6 +7,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 from jaxcon.core import contact_rows
@@ -14,6 +15,7 @@ from jaxcon.core.contact import Impulses, zero_impulses
 from jaxcon.core import grid
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
+from jaxcon.core.pytree import concrete
 from jaxcon.core.substeps import substepped
 from jaxcon.core.system import System
 from jaxcon.core.topology import Topology
@@ -116,6 +118,21 @@ def warm_start(sys: System, v, fr: tuple, lam_ws: tuple, h, factor=1.0, gradient
     return apply_impulses(sys, v, fr, lam), lam
 
 
+def refuse_hard_sets(owner, solver: str, model, why: str) -> None:
+    """Refuse, before tracing, a model with contacts and a constraint set of compliance 0 (where the compliance is
+    known) for a solver whose hard rows give way under load (`why`): a ValueError naming the solvers that hold a
+    hard set against contacts (PGS, Direct and XPBD: docs/constraints.md, hard sets under contacts)."""
+    if model.contact is None:
+        return
+    for con in model.constraints:
+        a = concrete(con.compliance)
+        if a is not None and np.any(np.asarray(a) == 0):
+            raise ValueError(
+                f"{owner}: {solver} does not hold the hard constraint set {con.name!r} (compliance 0) against "
+                f"contacts: {why}. Use jc.PGS, jc.Direct or jc.XPBD, which hold it within 1%, or give the set a "
+                "compliance > 0")
+
+
 STABILIZATIONS = ("baumgarte", "split")
 
 
@@ -189,7 +206,10 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_
         ssys, mu = rows
         f = R.set_frame(topo, blk, sys.cons[blk.generic], ssys, p if base is None else base + p, sys.w)
         a = jnp.zeros_like(f.C) if set_alpha is None else set_alpha(f.alpha)
-        dmu = (f.C - a * mu) * L.safe_reciprocal(f.s + a) * (f.k > 0).astype(f.C.dtype)
+        if getattr(blk, "hub_slot", None) is not None:      # a set's stars: their rows solved together
+            dmu = L.block_solve(topo, blk, f, f.C - a * mu, a)
+        else:
+            dmu = (f.C - a * mu) * L.safe_reciprocal(f.s + a) * (f.k > 0).astype(f.C.dtype)
         if set_alpha is None:
             dmu = dmu * (f.alpha == 0).astype(dmu.dtype)
         if jacobi_relaxation is not None:
@@ -275,27 +295,34 @@ def split_position_pass(sys: System, x, iterations: int, slop: tuple, jacobi_rel
     return lax.fori_loop(0, iterations, sweep, (x, mu0))[0]
 
 
-def shake_sweep(sys: System, fr0: tuple, h, tol=0.0):
+def shake_sweep(sys: System, fr0: tuple, h, tol=0.0, set_alpha=None):
     """One SHAKE pass over the constraint colours, (_, (x, v, mu)) -> (x, v, mu) (RATTLE's position stage):
     each constraint moves along its start-of-step direction n0 (`fr0`) by dmu = (|d|^2 - L^2) / (2 (w_i + w_j)
     d . n0), x_i += w_i n0 dmu, x_j -= w_j n0 dmu, and the velocities by the same divided by h; a rope's
     accumulated mu clamped >= 0; Gauss-Seidel colour by colour. A constraint whose residual is at or below `tol`
     (|d^2 - L^2| / (2 L^2)) is not updated. Moving along n0 rather than the current direction is what keeps a
     rotating rod's kinetic energy: the kick is then orthogonal to its velocity. A constraint set's rows move
-    C_lib(x) to 0 along their start-of-step gradient J0 (`shake_set`)."""
+    C_lib(x) to a mu along their start-of-step gradient J0 (`shake_set`), a = `set_alpha(compliance)` (None: 0,
+    every row hard)."""
     topo = sys.topology
     rest2 = tuple(r * r for r in sys.rest)
 
     def update(x, blk, f, r2, mu):
         xi, xj = L.gather_pair(topo, blk, x)
         d = xj - xi
-        dist, _ = L.safe_length(d)
+        dist, inv = L.safe_length(d)
         res = jnp.sum(d * d, axis=0) - r2
-        # a rod of rest length 0 (or one that turned far within the step) has d . n0 near 0 and would be flung
-        # (1e44 m): d . n0 is taken as at least |d| / 2, which bounds the move by |d| and leaves others unchanged
+        # a rod of rest length 0 holds its particles together and has no direction at its solution: it moves along
+        # the current d, by all of it (the exact projection onto x_j = x_i; along n0 it crept, 0.26 m in 1 s)
+        zero = r2 == 0
+        f = f._replace(n=jnp.where(zero, d * inv, f.n),
+                       k=jnp.where(zero, L.safe_reciprocal(f.wi + f.wj) * (dist > 0).astype(dist.dtype), f.k))
+        # a rod that turned far within the step has d . n0 near 0 and would be flung (1e44 m): d . n0 is taken as
+        # at least |d| / 2, which bounds the move by |d| and leaves others unchanged
         along = jnp.sum(d * f.n, axis=0)
         live = (f.k > 0) & (along > 0)
         rhs = jnp.where(live, res / (2 * jnp.where(live, jnp.maximum(along, 0.5 * dist), 1)), 0)
+        rhs = jnp.where(zero, dist, rhs)
         if getattr(blk, "star", False):        # a star's rows share the hub: solved together, every row updated
             upd = L.block_solve(topo, blk, f, rhs)
         else:
@@ -310,17 +337,22 @@ def shake_sweep(sys: System, fr0: tuple, h, tol=0.0):
         return (L.add_pair(topo, blk, x, pi, pj), L.add_pair(topo, blk, v, pi / h, pj / h)), new
 
     def shake_set(xv, blk, rows):
-        """C_lib(x) moved to 0 along the start-of-step gradient J0 (the row's mu = C_lib / (J(x) M^-1 J0^T), at
-        least half of sqrt(J M^-1 J^T J0 M^-1 J0^T) as for a rod); compliant rows are springs (RATTLE's
-        `_spring_kick`) and take no part."""
+        """C_lib(x) moved to a mu along the start-of-step gradient J0: dmu = (C_lib - a mu) / (J(x) M^-1 J0^T + a)
+        (J M^-1 J0^T at least half of sqrt(J M^-1 J^T J0 M^-1 J0^T) as for a rod), a = `set_alpha(compliance)`:
+        a compliant row is an implicit spring, as XPBD's, and a hard row (a = 0) is SHAKE's."""
         x, v = xv
         f0, ssys, mu = rows
         f = R.set_frame(topo, blk, sys.cons[blk.generic], ssys, x, sys.w)
         along = jnp.sum(f.w * jnp.sum(f.J * f0.J, axis=0), axis=0)
-        live = (f0.k > 0) & (f.k > 0) & (along > 0) & (f0.alpha == 0)
+        live = (f0.k > 0) & (f.k > 0) & (along > 0)
         ss = f.s * f0.s                  # 0 where a row has no gradient: sqrt's derivative there is infinite
         floor = 0.5 * jnp.sqrt(jnp.where(ss > 0, ss, 1)) * (ss > 0).astype(ss.dtype)
-        new = R.accumulate(blk, mu, jnp.where(live, f.C / jnp.where(live, jnp.maximum(along, floor), 1), 0))
+        a = jnp.zeros_like(f.C) if set_alpha is None else set_alpha(f0.alpha)
+        if getattr(blk, "hub_slot", None) is not None:      # a set's stars: along J0, J0 M^-1 J0^T (+ a) together
+            step = L.block_solve(topo, blk, f0._replace(k=f0.k * live), jnp.where(live, f.C - a * mu, 0), a)
+        else:
+            step = jnp.where(live, (f.C - a * mu) / jnp.where(live, jnp.maximum(along, floor) + a, 1), 0)
+        new = R.accumulate(blk, mu, step)
         q = f0.Jw * (new - mu)
         return (L.add_rows(topo, blk, x, q), L.add_rows(topo, blk, v, q / h)), new
 
@@ -512,8 +544,9 @@ def solve_phases(sys, v_free, obs, pairs, iterations: int, carry, body, slot_maj
     """The velocity solve, `iterations` of `body(obs, pairs)`, which returns one iteration carry = (v, ...) ->
     carry. A model without contacts runs them in one loop. With contacts it runs in two phases sharing the
     iterations (at least one each): compression (every target without restitution), then restitution,
-    continued from it; the restitution phase's change is scaled back where it would raise the kinetic energy
-    (contact.restitution_scale). One loop, whose rows switch targets between the phases, so the iteration is
+    continued from it, ending with the contacts' restitution stage (`contact.restitution_stage`, where the carry
+    ends with the contact `Impulses`); the restitution phase's change is scaled back where it would raise the
+    kinetic energy (contact.restitution_scale). One loop, whose rows switch targets between the phases, so the iteration is
     traced and compiled once. Returns the carry mixed leaf by leaf.
 
     `slot_major`: `body` reads the contact rows only through `contact.sweep`, so the carry's pair impulses of a grid
@@ -524,7 +557,8 @@ def solve_phases(sys, v_free, obs, pairs, iterations: int, carry, body, slot_maj
         one_iteration = body(None, None)
         return lax.fori_loop(0, iterations, lambda _, c: one_iteration(c), carry, unroll=sys.topology.unroll)
     major = slot_major and contact_rows.pair_partners(pairs) is not None
-    split = slot_major and obs is not None and obs.sel is not None
+    split = (slot_major and obs is not None and obs.sel is not None
+             and obs.gap.shape[0] <= contact_rows.UNROLL_OBSTACLES)     # more: scanned, not split
     if major or split:
         view = obs.gap.shape[1:] if split else None
 
@@ -551,6 +585,10 @@ def solve_phases(sys, v_free, obs, pairs, iterations: int, carry, body, slot_maj
         return carry, saved
 
     bounced, compressed = lax.fori_loop(0, total, one, (carry, carry))
+    if isinstance(bounced[-1], Impulses):       # the contacts' restitution stage, shared with every solver
+        v, imp = contact.restitution_stage(sys.contact, sys.w, bounced[0], contact_rows.phase(obs, True),
+                                           contact_rows.phase(pairs, True), bounced[-1])
+        bounced = (v,) + tuple(bounced[1:-1]) + (imp,)
     s = contact.restitution_scale(sys.w, v_free, compressed[0], bounced[0], contact_rows.bouncing(obs, pairs))
 
     def mix(a, b):       # integer leaves (a neighbour grid's partners and overflow) are the same in both phases

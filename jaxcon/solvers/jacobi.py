@@ -6,8 +6,8 @@ import warnings
 from typing import Any
 
 import jax.numpy as jnp
-import numpy as np
 
+from jaxcon.core import contact_rows
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
 from jaxcon.core.checks import check_bool, check_int, check_scalar
@@ -26,11 +26,10 @@ from jaxcon.solvers.common import (
 
 
 def max_degree(topo) -> int:
-    """Largest number of constraints (of every kind) sharing one free particle (static, from the topology; a
-    fixed particle takes no velocity change, so its constraints do not compete); at least 1."""
-    ends = [topo.i, topo.j] + [info.particles.reshape(-1) for info in topo.sets]
-    deg = np.bincount(np.concatenate(ends), minlength=topo.n) * ~topo.fixed
-    return max(int(deg.max(initial=0)), 1)
+    """Largest number of blocks solved together that share one free particle (static, from the topology; a fixed
+    particle takes no velocity change, so its constraints do not compete): a constraint counts at each of its
+    particles, a hub's star once (`Topology.block_degree`: its rows are solved together); at least 1."""
+    return max(int((topo.block_degree() * ~topo.fixed).max(initial=0)), 1)
 
 
 @pytree_dataclass
@@ -45,7 +44,9 @@ class Jacobi(Solver):
     clamps the accumulated lam + dlam of ropes to >= 0 and applies all the impulse changes at once (summed per
     particle); finally x += h v. The fixed point is the one PGS converges to (every constraint's velocity
     equation holds), but it is reached more slowly; relaxation < 2 / max particle degree always converges
-    (Gershgorin bound on the scaled Delassus matrix), so the default is 1 / max degree.
+    (Gershgorin bound on the scaled Delassus matrix), so the default is 1 / max degree. A hub's constraints (a
+    star of rods or of a set's rows) are solved together as one block (block Jacobi, `layout.block_solve`) and
+    count once at the hub in that degree (`max_degree`).
 
     Contacts (`planes`, `spheres`, `collide`; `contact.jacobi_pass`): PGS's rows, warm start,
     time-of-impact correction and position pass, with every contact (all obstacles and all pair slots at once)
@@ -61,7 +62,7 @@ class Jacobi(Solver):
       beta: Baumgarte factor in [0, 1], a differentiable leaf; with split impulses only the contacts' push-out
         rate.
       relaxation: scale of the summed impulse in (0, 2], a differentiable leaf; None: 1 / (largest number of
-        constraints at one particle) of the model being solved, or mass splitting for a model with contacts
+        constraints at one particle, a hub's star counting once) of the model being solved, or mass splitting for a model with contacts
         (a fixed value there scales every rod and contact row alike).
       warm_start: start from the previous step's impulses (static); a constraint set's compliant rows from a
         share of theirs, none where the spring is stiff for the step (`common.warm_rows`).
@@ -69,6 +70,9 @@ class Jacobi(Solver):
       stabilization: 'baumgarte' (default) or 'split' (static): split impulses as in `PGS`, the position
         projection by Jacobi sweeps with the rods' relaxation (1 / largest degree by default).
       slop: split impulses' slop, as in `PGS`.
+      contact_slop: the overlap left to the contacts, as `PGS.contact_slop` (default
+        `contact_rows.CONTACT_SLOP`). Without it a pile of discs does not rest: its contacts, left at C = 0 by the
+        position pass, are taken for separated and solved cold in some steps, without friction (docs/contacts.md).
     """
 
     iterations: int = static_field(default=20)
@@ -78,9 +82,11 @@ class Jacobi(Solver):
     substeps: int = static_field(default=1)
     stabilization: str = static_field(default="baumgarte")
     slop: Any = 0.005
+    contact_slop: Any = contact_rows.CONTACT_SLOP
 
     def __post_init__(self):
         check_stabilization("Jacobi", self.stabilization)
+        check_scalar("Jacobi", "contact_slop", self.contact_slop, 0.0, 0.5)
         check_scalar("Jacobi", "slop", self.slop, 0.0, 1.0)
         check_int("Jacobi", "iterations", self.iterations, 1)
         check_int("Jacobi", "substeps", self.substeps, 1)
@@ -129,7 +135,9 @@ class Jacobi(Solver):
             relax = jnp.asarray(1.0 / max_degree(topo), dtype) if cs is None else None
         split = self.stabilization == "split"
         share = jnp.asarray(self.slop, dtype)
-        b = step_begin(sys, x, v, lam_ws, beta, h, share if split else None, self.warm_start, found=found)
+        contact_slop = jnp.asarray(self.contact_slop, dtype)
+        b = step_begin(sys, x, v, lam_ws, beta, h, share if split else None, self.warm_start, found=found,
+                       contact_slop=contact_slop)
         base = None if relax is not None else row_counts(topo, b.fr, sys.w)
         springs = tuple(R.gamma(f, h) for f in b.fr)
 
@@ -149,7 +157,7 @@ class Jacobi(Solver):
         if split and b.fr:
             rod_relax = jnp.asarray(1.0 / max_degree(topo), dtype) if relax is None else relax
             rods_pass = lambda x: split_position_pass(sys, x, self.iterations, b.slop, rod_relax)  # noqa: E731
-        x = step_end(sys, x, v, b.v_free, b.obs, b.pairs, imp, h, rods_pass=rods_pass)
+        x = step_end(sys, x, v, b.v_free, b.obs, b.pairs, imp, h, rods_pass=rods_pass, contact_slop=contact_slop)
         return x, v, with_contacts(sys, lam, imp)
 
 
@@ -159,20 +167,37 @@ def row_counts(topo, fr, like):
     c = jnp.zeros((1,) + like.shape[1:], like.dtype)
     for blk, f in zip(topo.blocks, fr):
         one = (f.k > 0).astype(like.dtype)[None]
-        if blk.generic is not None:          # a set's row counts at each of its particles
-            c = L.add_rows(topo, blk, c, jnp.broadcast_to(one[:, None], (1,) + f.w.shape))
+        if blk.generic is not None:          # a set's row counts at each of its particles, a star's once at its hub
+            per = jnp.broadcast_to(one[:, None], (1,) + f.w.shape)
+            if blk.hub_slot is not None:
+                hub = blk.hub_slot.array
+                per = jnp.where(hub, (one / _star_rows(blk, one))[:, None], per)
+            c = L.add_rows(topo, blk, c, per)
             continue
-        c = L.add_pair(topo, blk, c, one, one)
+        hub = one / _star_rows(blk, one) if blk.star else one
+        c = L.add_pair(topo, blk, c, hub, one)
     return c
 
 
-def _split_mass(topo, blk, f, count):
-    """A row's J M^-1 J^T with each particle's inverse mass multiplied by its count (mass splitting)."""
+def _star_rows(blk, one):
+    """Per row of a star block (rods' [..., S] or a set's [..., H S]), the number of live rows of its star (at
+    least 1), so that a star counts once at its hub."""
+    S = one.shape[-1] if blk.star else blk.spokes
+    per = one.reshape(one.shape[:-1] + (one.shape[-1] // S, S))
+    n = jnp.maximum(jnp.sum(per, axis=-1, keepdims=True), 1)
+    return jnp.broadcast_to(n, per.shape).reshape(one.shape)
+
+
+def _split_frame(topo, blk, f, count):
+    """The rows `f` with each particle's inverse mass multiplied by its count (mass splitting): J M^-1 J^T and
+    the effective mass k of the split masses."""
     if blk.generic is not None:
-        c = L.gather_rows(topo, blk, count)[0]
-        return jnp.sum(c * f.w * jnp.sum(f.J * f.J, axis=0), axis=0)
+        w = L.gather_rows(topo, blk, count)[0] * f.w
+        s = jnp.sum(w * jnp.sum(f.J * f.J, axis=0), axis=0)
+        return f._replace(w=w, s=s, k=L.safe_reciprocal(s) * (f.k > 0).astype(s.dtype))
     ci, cj = L.gather_pair(topo, blk, count)
-    return ci[0] * f.wi + cj[0] * f.wj
+    wi, wj = ci[0] * f.wi, cj[0] * f.wj
+    return f._replace(wi=wi, wj=wj, k=L.safe_reciprocal(wi + wj) * (f.k > 0).astype(wi.dtype))
 
 
 def rows_pass(topo, fr, bias, springs, v, lam, count, relax):
@@ -185,12 +210,11 @@ def rows_pass(topo, fr, bias, springs, v, lam, count, relax):
     for blk, f, b, g, l in zip(topo.blocks, fr, bias, springs, lam):
         rhs = R.rel(topo, blk, f, v) + b
         if count is None:
-            step = relax * (rhs * f.k if g is None else R.solve(topo, blk, f, rhs, l, g))
+            step = relax * R.solve(topo, blk, f, rhs, l, g)
         else:
-            active = (f.k > 0).astype(f.k.dtype)
-            s = _split_mass(topo, blk, f, count)
-            step = rhs * L.safe_reciprocal(s) * active if g is None else \
-                (rhs - g.g * l) * L.safe_reciprocal(s + g.g) * active
+            fs = _split_frame(topo, blk, f, count)
+            step = R.solve(topo, blk, fs, rhs, l, None if g is None else R.Spring(
+                g.g, L.safe_reciprocal(fs.s + g.g) * (f.k > 0).astype(g.g.dtype)))
         nl = R.accumulate(blk, l, step)
         dv = R.apply(topo, blk, f, dv, nl - l)
         new.append(nl)

@@ -17,7 +17,7 @@ from jaxcon.core.contact import Impulses, zero_impulses
 from jaxcon.core.pytree import concrete, pytree_dataclass, static_field
 from jaxcon.core.system import Solver
 from jaxcon.solvers import contact
-from jaxcon.solvers.common import run_substeps, split_contacts, with_found
+from jaxcon.solvers.common import refuse_hard_sets, run_substeps, split_contacts, with_found
 
 #: The spring tension is clipped to +- STRETCH_CLIP * stiffness * rest_length (constraints with rest length
 #: > 0). A stable run never comes near it (it is a 1000% stretch, ten times `jc.diagnose`'s violation limit);
@@ -70,7 +70,9 @@ class Penalty(Solver):
     u sqrt(m / stiffness). Kinetic energy is not monotone through contacts, as some of it is held in the
     contact springs (the 16-ball break at dt 1/60 gains up to 4.7% of its initial kinetic energy in a step
     with stiffness 1e5 and 30 substeps, its balls overlapping by up to 5.5% of a diameter; 0.45% and 0.2%
-    with 1e6 and 100 substeps). `stability_limit` counts the contacts too.
+    with 1e6 and 100 substeps). `stability_limit` counts the contacts too. A hard constraint set (compliance 0)
+    in a model with contacts is refused before tracing (`_check_stability`): it would be a spring of
+    `stiffness` in the set's own units, squeezed by the contacts' load (docs/constraints.md).
 
     Args:
       stiffness: spring constant k, N/m, a differentiable leaf, > 0 (rods, ropes and contacts).
@@ -154,9 +156,11 @@ class Penalty(Solver):
         return float(2 / omega * (np.sqrt(1 + zeta ** 2) - zeta))
 
     def _check_stability(self, owner, model, dt) -> None:
-        """Warn (before tracing, where the values are known) when a substep is above `stability_limit`: the
-        springs will then blow up. A warning, not an error: the limit is a sufficient bound, and an unstable run
-        is something one may want to see."""
+        """Refuse hard constraint sets under contacts (`common.refuse_hard_sets`); warn (before tracing, where the values
+        are known) when a substep is above `stability_limit`: the springs will then blow up. A warning, not an
+        error: the limit is a sufficient bound, and an unstable run is something one may want to see."""
+        refuse_hard_sets(owner, "Penalty", model, "it would be a spring of `stiffness` in the set's own units, "
+                         "squeezed by the contacts' load (a hard volume pressed to 70% of its height lost 8.4%)")
         vals = [concrete(a) for a in (self.stiffness, model.inv_mass, dt)]
         if any(a is None for a in vals):
             return
@@ -352,10 +356,11 @@ def _start_overlaps(cs, w, x, v, prev, h, k, c, partners=None):
     if ct.n_obstacles:
         m = L.safe_reciprocal(w[0])
         size = jnp.sum(jnp.abs(x), 0) + r
-        for q in range(ct.n_obstacles):
-            n, C = contact_rows.obstacle_gap(cs, q, x)
-            tol = contact_rows.tolerance(size + contact_rows.obstacle_size(cs, q))
-            x = x + n * _excess(C, jnp.sum(n * v, 0), m, prev.obs_n[q], h, k, c, two_zeta, tol)
+        def one(x, q, sphere, prev_n):
+            n, C = contact_rows.obstacle_gap(cs, q, x, sphere=sphere)
+            tol = contact_rows.tolerance(size + contact_rows.obstacle_size(cs, q, sphere))
+            return x + n * _excess(C, jnp.sum(n * v, 0), m, prev_n, h, k, c, two_zeta, tol), None
+        x = contact_rows.each_obstacle(ct, one, x, prev.obs_n)[0]
     if ct.n_pairs or ct.has_grid:
         xf, vf, wf, rf = x.reshape(dim, -1), v.reshape(dim, -1), w.reshape(-1), cs.radius_flat
         ia, ja, valid, index = contact_rows.pair_slots(ct, xf.shape[1], partners)
@@ -378,13 +383,11 @@ def _contact_impulses(topo, cs, w, x, v0, v, h, k, c, slip, partners=None):
     dv = jnp.zeros_like(v)
     if ct.n_obstacles:
         m = L.safe_reciprocal(w[0])
-        rows = []
-        for q in range(ct.n_obstacles):
-            n, C = contact_rows.obstacle_gap(cs, q, x)
+        def one(dv, q, sphere, _):
+            n, C = contact_rows.obstacle_gap(cs, q, x, sphere=sphere)
             p_n, p_t = _penalty_row(v0, v, n, C, m, k, c, two_zeta, mu, slip, h)
-            dv = dv + w * (n * p_n + p_t)
-            rows.append((p_n, p_t))
-        on, ot = (jnp.stack(a) for a in zip(*rows))
+            return dv + w * (n * p_n + p_t), (p_n, p_t)
+        dv, (on, ot) = contact_rows.each_obstacle(ct, one, dv)
     if ct.n_pairs or ct.has_grid:
         xf, vf, v0f, wf = x.reshape(dim, -1), v.reshape(dim, -1), v0.reshape(dim, -1), w.reshape(-1)
         ia, ja, valid, index = contact_rows.pair_slots(ct, xf.shape[1], partners)

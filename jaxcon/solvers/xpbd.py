@@ -46,17 +46,17 @@ class XPBD(Solver):
     held, not projected: `contact.push_out` moves it out at the substep's start, at most 3 m/s, with no
     velocity), with
     *static* friction cancelling the substep's relative tangential displacement while |lam_t| <= mu lam_n.
-    After v = (p - x) / h, one velocity pass over the contacts that pushed (lam_n > 0) sets the normal
-    relative velocity to -e times its value at the start of the substep after gravity (e = 0 at or below
-    `restitution_threshold`) and applies *dynamic* friction, the tangential velocity removed by an impulse
-    inside the Coulomb disc of the substep's normal impulse. The model's single `friction` is used for both
+    After v = dp / h, a velocity pass over the contacts that pushed (lam_n > 0) sets the normal
+    relative velocity to the bounce of sequential impacts from the start of the substep after gravity
+    (`contact_rows.chain_bounces`; -e vn for a lone contact, e = 0 at or below `restitution_threshold`) and
+    applies *dynamic* friction, the tangential velocity removed by an impulse inside the Coulomb disc of the
+    substep's normal impulse; the positions follow that friction (`contact.position_velocity_pass`; dp += h dv,
+    in the displacement form), so that what it holds does not creep. The model's single `friction` is used for both
     static and dynamic friction. The reported contact impulses are lam / h plus the velocity pass's impulses,
     summed over the substeps (N s, contact_n >= 0, |contact_t| <= mu contact_n). There is no time-of-impact
     correction (unlike PGS): an impact is resolved at the end of the substep it falls in, so positions after
     a bounce are off by up to a substep's travel and d(final state)/d(initial state) across a bounce is the
-    slope of that piecewise map, with jumps where the impact moves to another substep. Restitution acts on
-    each contact's own approach speed, so an impulse carried through touching bodies within one substep is
-    inelastic: the 16-ball break (`XPBD(substeps=20)`, dt 1/60) keeps 45% of its kinetic energy, PGS 89%.
+    slope of that piecewise map, with jumps where the impact moves to another substep.
     """
 
     iterations: int = static_field(default=1)
@@ -73,8 +73,9 @@ class XPBD(Solver):
     def _step(self, sys, x, v, lam, dt):
         """Every substep: the predicted displacement dp = h (v + h g) (`position_sweep`'s displacement form);
         `iterations` sweeps, each projecting the
-        constraint colours, then the contacts (`contact.position_pass`); v = dp / h, x + dp, then with contacts
-        one velocity pass of restitution and dynamic friction (`contact.position_velocity_pass`). Returns the
+        constraint colours, then the contacts (`contact.position_pass`); v = dp / h, then with contacts
+        one velocity pass of restitution and dynamic friction (`contact.position_velocity_pass`), whose friction
+        the displacement follows (dp += h dv) before x + dp. Returns the
         impulses summed over the substeps: the blocks', paired with the contacts' `Impulses` where the model has
         contacts. A grid model's substeps share one search for the whole step (`grid_substepped`)."""
         topo, cs = sys.topology, sys.contact
@@ -101,10 +102,10 @@ class XPBD(Solver):
             ahead = h * v_before
             dp, mu, imp = lax.fori_loop(0, self.iterations, sweep, (ahead, zero, imp), unroll=topo.unroll)
             v = dp / h
-            p = x + dp
             if cs is not None:
-                v, imp = contact.position_velocity_pass(cs, sys.w, p, v_before, v, imp, h, partners)
+                v, imp, follow = contact.position_velocity_pass(cs, sys.w, x + dp, v_before, v, imp, h, partners, True)
+                dp = dp + follow                 # the positions follow the velocity pass's friction
                 imp = with_found(imp, found)
-            return p, v, with_contacts(sys, tuple(m / h for m in mu), imp)
+            return x + dp, v, with_contacts(sys, tuple(m / h for m in mu), imp)
 
         return run_substeps(sys, substep, self.substeps, x, v, lam, dt)

@@ -16,7 +16,6 @@ from __future__ import annotations
 import importlib
 import math
 import pkgutil
-import traceback
 from typing import Callable, NamedTuple
 
 import jaxcon as jc
@@ -94,8 +93,8 @@ def run_cell(case_name: str, solver_name: str, full: bool = False) -> Cell:
             return Cell(case_name, solver_name, "REFUSED", math.nan, str(e).splitlines()[0])
         return Cell(case_name, solver_name, "FAIL", math.nan, f"ValueError: {e}")
     except Exception as e:  # noqa: BLE001 -- a cell that raises is a failure, reported with its cause
-        tb = traceback.format_exception_only(type(e), e)[-1].strip()
-        return Cell(case_name, solver_name, "FAIL", math.nan, tb)
+        first = (str(e).strip().splitlines() or [""])[0]
+        return Cell(case_name, solver_name, "FAIL", math.nan, f"{type(e).__name__}: {first}")
     value = float(out.value)
     ok = bool(out.ok) and math.isfinite(value)
     return Cell(case_name, solver_name, "PASS" if ok else "FAIL", value, out.detail)

@@ -93,7 +93,7 @@ def describe(method=None) -> str:
             else "reduced (angle) coordinates, classical RK4, h = 1e-4 s, float64 NumPy")
 
 
-#: The recording of issue 23: a planar double pendulum started mid-swing at angular velocities the fit does not
+#: The recording docs/fitting.md fits: a planar double pendulum started mid-swing at angular velocities the fit does not
 #: know, recorded at 30 Hz for 3 s with 2 mm of Gaussian noise on every coordinate (seed 23).
 RECORDING = dict(masses=(1.0, 0.7), lengths=(0.9, 0.6), angles=(1.0, -0.5), omegas=(1.5, -2.0), rate=30.0,
                  duration=3.0, noise=2e-3, seed=23, g=9.81)
