@@ -45,7 +45,7 @@ def batch_minor_topology(t: Topology, batch: int, packed: bool = False, unroll: 
         return (np.asarray(idx, np.int64)[:, None] * B + ar).reshape(-1)
 
     out.n, out.dim, out.m = t.n * B, t.dim, t.m * B
-    out.m_pairs, out.sets = t.m_pairs * B, ()          # models with constraint sets are batched with vmap
+    out.m_pairs, out.sets, out.set_hubs = t.m_pairs * B, (), []     # models with constraint sets are batched with vmap
     out.i, out.j = rep(t.i), rep(t.j)
     out.is_rope, out.colour = np.repeat(t.is_rope, B), np.repeat(t.colour, B)
     out.fixed = np.repeat(t.fixed, B)                   # copy b of particle p is p * B + b
