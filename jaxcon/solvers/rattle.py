@@ -189,7 +189,8 @@ class RATTLE(Solver):
         if cs is None:
             return x, v, lam
         v_free = sys.apply_gravity(v_approach, h / 2)
-        v, imp = _contact_velocities(sys, x, v_approach, v_free, v, imp, h, partners, self.iterations, bound)
+        v, imp = _contact_velocities(sys, (x0, x - x0), v_approach, v_free, v, imp, h, partners, self.iterations,
+                                     bound)
         return x, v, with_contacts(sys, lam, with_found(imp, found))
 
 
@@ -238,7 +239,7 @@ def _sweeps(body, carry, iterations: int, unroll: bool, change, bound):
     return lax.fori_loop(0, -(-iterations // _CHUNK), chunk, (carry, jnp.zeros((), bool)))[0]
 
 
-def _contact_velocities(sys, x, v_approach, v_free, v, imp, h, partners, iterations: int, bound):
+def _contact_velocities(sys, moved, v_approach, v_free, v, imp, h, partners, iterations: int, bound):
     """The contacts' velocity stage: each contact that pushed in the position stage (lam_n > 0) gets a velocity
     row (`contact_rows.velocity_rows`: restitution target from the approach velocity, dynamic friction), swept
     from the position stage's impulses imp / h to convergence (`_sweeps`) as the constraints' projection is: the
@@ -248,7 +249,8 @@ def _contact_velocities(sys, x, v_approach, v_free, v, imp, h, partners, iterati
     (the step's velocity without impulses) or of the compression phase (`contact.restitution_scale`). Returns
     (v, the step's contact impulses in N s)."""
     cs, w = sys.contact, sys.w
-    obs, pairs = contact_rows.velocity_rows(cs, w, x, v_approach, imp, partners)
+    x0, dp = moved                 # the position stage's start and displacement: its normals (`velocity_rows`)
+    obs, pairs = contact_rows.velocity_rows(cs, w, x0 + dp, v_approach, imp, partners, (x0, dp, h * v_approach))
     obs, pairs = (None if r is None else r._replace(target_c=jnp.zeros_like(r.target), warm=r.k > 0)
                   for r in (obs, pairs))
     fields = ("obs_n", "obs_t", "pair_n", "pair_t")

@@ -103,7 +103,8 @@ class XPBD(Solver):
             dp, mu, imp = lax.fori_loop(0, self.iterations, sweep, (ahead, zero, imp), unroll=topo.unroll)
             v = dp / h
             if cs is not None:
-                v, imp, follow = contact.position_velocity_pass(cs, sys.w, x + dp, v_before, v, imp, h, partners, True)
+                v, imp, follow = contact.position_velocity_pass(cs, sys.w, x + dp, v_before, v, imp, h, partners, True,
+                                                                (x, dp, ahead))
                 dp = dp + follow                 # the positions follow the velocity pass's friction
                 imp = with_found(imp, found)
             return x + dp, v, with_contacts(sys, tuple(m / h for m in mu), imp)
