@@ -167,7 +167,7 @@ def test_position_level_billiards_break_conserves_momentum_and_never_gains_energ
     """dt 1/60, 2 s: momentum to 1e-11 until the first cushion contact (measured 1e-13 XPBD, 9e-14 RATTLE), no
     step gains kinetic energy (measured at most +9e-15 XPBD, +3e-16 RATTLE of the initial energy: roundoff), no
     two balls ever overlap by 1% of a diameter with XPBD(substeps=20) (measured: never at a recorded step), 4%
-    with RATTLE(10) (measured 3.2% before its tolerance sweeps: its one step of dt moves a ball up to two
+    with RATTLE(10) (measured 2.9%: its one step of dt moves a ball up to two
     diameters, and the position pass's speculative normals stop the pair that used to pass through each other in
     the break, 0.6% before, in a cluster its sweeps leave under-converged). XPBD's break keeps 76% of the kinetic
     energy after it (PGS: 89%): its restitution comes from sequential impacts through the rack
