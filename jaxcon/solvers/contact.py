@@ -474,7 +474,8 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
     def obstacles(x):
         def one(x, q, sphere, _):                # planes, then spheres
             n, C = obstacle_gap(cs, q, x, sphere=sphere)
-            return x + n * (_capped(jnp.maximum(-C - slop * r, 0), cap, beyond, r) * (k > 0)), None
+            size = r + cs.sphere_radius[q - ct.n_planes] if sphere else r      # the contact distance
+            return x + n * (_capped(jnp.maximum(-C - slop * r, 0), cap, beyond, size) * (k > 0)), None
         return each_obstacle(ct, one, x)[0]
 
     def pairs_pass(x):           # round by round, or slot by slot (mass splitting over a slot's overlaps)
