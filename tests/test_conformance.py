@@ -15,36 +15,17 @@ _PENALTY_CHAIN = ("Penalty's linear contact springs carry a hit through touching
                   "spreads over the row; PGS, Direct, XPBD, SoftStep and RATTLE pass")
 _PUSH = ("velocity-level push-out is capped per contact, not per particle, so a column of overlaps adds the caps "
          "up; RATTLE passes")
-_F32 = ("XPBD predicts x + h v + h^2 g, and in float32 h^2 g rounds away below half an ulp of x; predicting in "
-        "displacement form, relative to the substep's start, is the fix")
-_TUNNEL = ("position-level contacts project along the normal at the substep's end, so a particle that passes a "
-           "body's centre within a substep is pushed out of its far side; PGS, Direct, Jacobi and SoftStep have "
-           "speculative rows and pass")
-_SPRING_TUNNEL = "Penalty's contact springs act only on overlaps, with no speculative term, so a fast particle passes"
 _SOFT_PUSH = ("a start overlap is a compressed contact spring (Penalty) or a soft row (SoftStep) that releases its "
               "energy; RATTLE passes")
-_POSITION_PUSH = ("a start overlap projected out at position level becomes a velocity through v = (p - x) / h; "
-                  "RATTLE passes")
 OPEN = {
     ("bending cantilever at rest", "XPBD"): _XPBD_ITER,
     ("newton's cradle", "Penalty"): _PENALTY_CHAIN,
     ("newton's cradle, two balls in", "Penalty"): _PENALTY_CHAIN,
-    ("free fall float32", "XPBD"): _F32,
-    ("small forces float32", "XPBD"): _F32,
-    ("incline float32", "XPBD"): _F32,
-    ("ball through cloth", "RATTLE"): _TUNNEL,
-    ("disc through wall", "XPBD"): _TUNNEL,
-    ("disc through wall", "RATTLE"): _TUNNEL,
-    ("disc through wall", "Penalty"): _SPRING_TUNNEL,
-    ("particle through sphere", "XPBD"): _TUNNEL,
-    ("particle through sphere", "RATTLE"): _TUNNEL,
-    ("particle through sphere", "Penalty"): _SPRING_TUNNEL,
     ("start overlap push-out", "PGS"): _PUSH,
     ("start overlap push-out", "Jacobi"): _PUSH,
     ("start overlap push-out", "Direct"): _PUSH,
     ("start overlap push-out", "SoftStep"): _SOFT_PUSH,
     ("start overlap push-out", "Penalty"): _SOFT_PUSH,
-    ("start overlap push-out", "XPBD"): _POSITION_PUSH,
 }
 
 

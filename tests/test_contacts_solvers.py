@@ -166,10 +166,13 @@ def test_position_level_head_on_elastic_collision_exchanges_velocities(solver, p
 def test_position_level_billiards_break_conserves_momentum_and_never_gains_energy(solver, kept):
     """dt 1/60, 2 s: momentum to 1e-11 until the first cushion contact (measured 1e-13 XPBD, 9e-14 RATTLE), no
     step gains kinetic energy (measured at most +9e-15 XPBD, +3e-16 RATTLE of the initial energy: roundoff), no
-    two balls ever overlap by 1% of a diameter (measured: XPBD(substeps=20) never at a recorded step, RATTLE(10)
-    0.6%). XPBD's break keeps 76% of the kinetic energy after it (PGS: 89%): its restitution comes from
-    sequential impacts through the rack (`contact_rows.chain_bounces`; 45% when each contact bounced on its own
-    approach speed at the start of the substep, 0 for racked balls)."""
+    two balls ever overlap by 1% of a diameter with XPBD(substeps=20) (measured: never at a recorded step), 4%
+    with RATTLE(10) (measured 2.9%: its one step of dt moves a ball up to two
+    diameters, and the position pass's speculative normals stop the pair that used to pass through each other in
+    the break, 0.6% before, in a cluster its sweeps leave under-converged). XPBD's break keeps 76% of the kinetic
+    energy after it (PGS: 89%): its restitution comes from sequential impacts through the rack
+    (`contact_rows.chain_bounces`; 45% when each contact bounced on its own approach speed at the start of the
+    substep, 0 for racked balls)."""
     model, state = jc.scenes.billiards()
     dt, R = 1 / 60, jc.scenes.BALL_RADIUS
     _, traj = jc.rollout(model, state, solver, dt, 120)
@@ -186,7 +189,7 @@ def test_position_level_billiards_break_conserves_momentum_and_never_gains_energ
     if kept is not None:
         assert kept[0] < ke[10] / ke[0] < kept[1]            # after the break (documented above)
     d = np.linalg.norm(x[:, :, None] - x[:, None], axis=-1) + np.eye(n)
-    assert (2 * R - d).max() < 0.01 * 2 * R
+    assert (2 * R - d).max() < (0.01 if kept is not None else 0.04) * 2 * R
     assert np.all((x >= R - 1e-9) & (x <= np.array(jc.scenes.TABLE) - R + 1e-9))
     _check_impulses(traj, 0.05)
 

@@ -82,7 +82,10 @@ EXPECT = {
     # radius (ten SHAKE sweeps, as PGS's ten); the break holds to 0.6% of a diameter with no energy gain; the
     # cloth diverges as RATTLE's long chains do without contacts (tests/test_hard_cases.py): rods at 69x.
     ("RATTLE", "heavy_on_light_100"): (S, 0.6, 0.0, 1e-3),
-    ("RATTLE", "break_16_dt_1_60"): (S, 0.01, 0.0, 1e-9, 1e-12, 1e-12),
+    # Its break: 2.9% overlap since the position pass's speculative normals stop a pair that passed through
+    # each other between two recorded steps (0.6% before; docs/contacts.md, fast particles); no step gains
+    # kinetic energy since every position-level row keeps one normal through the sweeps (4e-4 of KE_0 before).
+    ("RATTLE", "break_16_dt_1_60"): (S, 0.04, 0.0, 1e-9, 1e-12, 1e-12),
     ("RATTLE", "drape_from_1m"): (D,),
     # Direct(16 substeps; split or not): its contacts are PGS's rows, swept 10 times per substep between exact
     # solves of the constraints (none here), so it runs these as PGS(10, substeps=16) does, bit for bit: the

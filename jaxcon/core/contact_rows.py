@@ -126,17 +126,58 @@ def direction(d):
     return dist, jnp.where(dist > 0, n, up)
 
 
-def overlap_normal(d0, d, R):
-    """(unit normal, gap) of contacts at distance vectors d [dim, ...] (touching at |d| = R) for a position
-    level solver (XPBD) whose contacts also had d0 at the start of the substep: the normal of d
-    (`direction`), except for a contact that already overlapped at the start (a particle started inside a
-    sphere or another particle), which keeps the start's normal and the gap along it, n0 . d - R, so that it
-    leaves by the nearest surface of where it was (upwards from the exact centre), not by the side that
-    gravity's prediction happened to move it towards."""
+def overlap_normal(d0, disp, R, ahead=None, hold=None):
+    """(unit normal, gap, floor) of contacts at distance vectors d0 [dim, ...] at the start of a position-level
+    substep (XPBD, RATTLE; touching at |d| = R), displaced by `disp` since (d = d0 + disp, `disp`
+    kept apart so that it stays in full precision: `contact.position_pass`).
+
+    Every row keeps one normal through the sweeps of a substep, and its gap is measured along it, n . d - R
+    (the linearised gap of a speculative row; n . d >= R implies |d| >= R): the predicted end's, d0 + `ahead`
+    (`direction`), except
+    * for a contact that already overlapped at the start (a particle started inside a sphere or another
+      particle), which keeps the start's normal and the gap along it, n0 . d - R, so that it leaves by the
+      nearest surface of where it was (upwards from the exact centre), not by the side that gravity's
+      prediction happened to move it towards;
+    * for a contact separated at the start whose straight path over the substep's predicted displacement
+      `ahead` (the free one, h v; default `disp`) passes the other body, coming out again or ending beyond its
+      centre (`_swept`, the speculative contact of the velocity rows, at position level): the normal at that
+      time of impact, with the gap along it. A particle that moves further than the other body's size in one
+      substep is stopped at the surface it hit, instead of being projected out of the side it ended nearest.
+      Decided on the prediction, not on the current displacement, so that the row keeps one normal through
+      the sweeps of a substep (with the current one it switched between the two normals from sweep to sweep,
+      and RATTLE's break at dt 1/60 ended with balls 23% of a diameter into each other).
+
+    On the current direction, which every sweep's corrections turn, a contact's position impulses summed to a
+    vector off the normal at the end, and the velocity rows (`velocity_rows`), which can take back only the part
+    along their normal, left the rest: RATTLE's billiards break gained 4e-4 of its kinetic energy in the step
+    after the break, at any number of sweeps.
+
+    `floor` (<= 0): the gap the contact is projected onto: 0, or for a start overlap deeper than `hold` (at
+    least `CONTACT_SLOP` R; the position-level solvers pass PUSH_OUT_SPEED h) the start's gap C0: the position pass keeps such an overlap from getting deeper but does not
+    push it out (that would become velocity, v = dp / h); `solvers.contact.push_out` does, at position level, at
+    most PUSH_OUT_SPEED h per substep. Shallower overlaps (what a substep's sweeps left of the last one's
+    contacts) are projected out as before: held too, a landing pile kept them (XPBD's grid pile overlapped 0.75%
+    of a diameter instead of 0.29%)."""
     dist0, n0 = direction(d0)
+    tol = tolerance(magnitude(d0) + R)
+    C0 = dist0 - R
+    deep = C0 < -tol
+    ahead = disp if ahead is None else ahead
+    n_hit, _, _, hit, _, _ = _swept(d0, ahead, R, 1.0, tol)
+    end = d0 + ahead
+    # the path passed the other body: out again, or beyond its centre (projecting along the end's own normal
+    # would push it out of the far side)
+    hit = hit & ((dot(end, end) > R * R) | (dot(n_hit, end) < 0))
+    d = d0 + disp
     dist, n = direction(d)
-    deep = dist0 - R < -tolerance(magnitude(d0) + R)
-    return jnp.where(deep, n0, n), jnp.where(deep, dot(n0, d), dist) - R
+    # a path that stays outside: the normal where it comes closest (a half-plane there holds it outside, and one
+    # at the end of a path that ran past the other body would push it forward)
+    aa = dot(ahead, ahead)
+    t = jnp.clip(-dot(d0, ahead) / jnp.where(aa > 0, aa, 1), 0, 1)
+    fixed = deep | hit | (dot(end, end) > R * R)
+    n = jnp.where(fixed, jnp.where(deep | hit, jnp.where(deep, n0, n_hit), direction(d0 + t * ahead)[1]), n)
+    hold = CONTACT_SLOP * R if hold is None else jnp.maximum(hold, CONTACT_SLOP * R)
+    return n, jnp.where(fixed, dot(n, d), dist) - R, jnp.where(C0 < -hold, C0, 0)
 
 
 def pair_slots(ct: ContactTopology, n: int, partners=None):
@@ -837,6 +878,46 @@ def rows(cs: ContactSystem, w, x, v0, v, beta, h, partners=None, slop=0.0):
     return obs, pairs
 
 
+#: How deep a speculative row (`speculative_rows`) lets a contact go, as a fraction of its contact distance.
+SPECULATIVE_DEPTH = 0.5
+
+
+def speculative_rows(cs: ContactSystem, w, x, v, h, partners=None, depth=SPECULATIVE_DEPTH):
+    """Speculative rows for a solver whose contacts are springs (Penalty): (obstacle Rows or None, pair Rows or
+    None) whose target vn' >= -max(C_n + depth R, 0) / h lets each contact close its gap and go at most `depth`
+    of its contact distance R deep within the (sub)step, never further, along the normal at the time of impact
+    of the straight paths at the velocities `v` (`_swept`, as the velocity rows' speculative contacts; C_n the
+    gap along it). A contact already that deep gets the target 0: it goes no deeper, and its spring pushes it out.
+    Spheres and pairs only (a plane is a half-space: nothing passes it); no restitution, no friction (the
+    spring's). A spring contact stopped this way loses the approach speed the row takes; a contact the spring
+    holds within `depth` on its own is untouched."""
+    ct, dim = cs.ct, x.shape[0]
+    obs = pairs = None
+    if ct.n_spheres:
+        geo = _obstacle_geometry(cs, x, v, h)
+        n, C_n = geo[0], geo[2]
+        r = cs.radius[0]
+        reach = jnp.concatenate([jnp.zeros((ct.n_planes,) + r.shape, r.dtype),
+                                 cs.sphere_radius.reshape((-1,) + (1,) * r.ndim) + r])      # planes, then spheres
+        winv = jnp.broadcast_to(w[0], C_n.shape)
+        sphere = (jnp.arange(ct.n_obstacles) >= ct.n_planes).reshape((-1,) + (1,) * (C_n.ndim - 1))
+        k = L.safe_reciprocal(winv) * sphere.astype(winv.dtype)
+        obs = Rows(n, -jnp.maximum(C_n + depth * reach, 0) / h, k, winv, jnp.zeros_like(C_n), C_n)
+    if ct.n_pairs or ct.has_grid:
+        xf, vf, wf = x.reshape(dim, -1), v.reshape(dim, -1), w.reshape(-1)
+        ia, ja, valid, _ = pair_slots(ct, xf.shape[1], partners)
+        R = cs.radius_flat[ia] + cs.radius_flat[ja]
+        xi, xj = xf[:, ia], xf[:, ja]
+        geo = _swept(xj - xi, vf[:, ja] - vf[:, ia], R, h, tolerance(magnitude(xi) + magnitude(xj) + R))
+        n, C_n = geo[0], geo[2]
+        winv = wf[ia] + wf[ja]
+        k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype)
+        pairs = Rows(n, -jnp.maximum(C_n + depth * R, 0) / h, k, winv, jnp.zeros_like(C_n), C_n)
+        if partners is not None:
+            pairs = pairs._replace(i=ia, j=partners)
+    return obs, pairs
+
+
 #: Models of at least this many particles sweep an obstacle's rows only where a particle is within reach of it
 #: (`select_obstacles`, `solvers.contact.sweep`): the 1024-disc box has 3072 plane rows, of which about 100 touch.
 SELECT_FROM = 256
@@ -892,10 +973,9 @@ def pair_total(ct, w, P, sign_i, index=None, partners=None):  # noqa: D401
 
 
 # ---- rows at position level (XPBD, Penalty) and of XPBD's velocity pass ---------------------------------
-def obstacle_gap(cs: ContactSystem, q, p, x=None, sphere: Optional[bool] = None):
+def obstacle_gap(cs: ContactSystem, q, p, sphere: Optional[bool] = None):
     """(unit normal [dim, *view], gap [*view]) of every particle at `p` against obstacle q (planes first).
-    With the substep's start positions `x`, a particle that started inside a sphere keeps the normal it had
-    there (`overlap_normal`). A traced q (`each_obstacle`) comes with `sphere`, whether it is a sphere."""
+    A traced q (`each_obstacle`) comes with `sphere`, whether it is a sphere."""
     dim, nview = p.shape[0], p.ndim - 1
     r = cs.radius[0]
     if not (q >= cs.ct.n_planes if sphere is None else sphere):
@@ -903,10 +983,25 @@ def obstacle_gap(cs: ContactSystem, q, p, x=None, sphere: Optional[bool] = None)
         return nrm, dot(nrm, p) - cs.plane_offset[q] - r
     s = q - cs.ct.n_planes
     c = cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
-    if x is not None:
-        return overlap_normal(x - c, p - c, cs.sphere_radius[s] + r)
     dist, nrm = direction(p - c)
     return nrm, dist - cs.sphere_radius[s] - r
+
+
+def obstacle_moved_gap(cs: ContactSystem, q, x, dp, ahead=None, hold=0.0, sphere: Optional[bool] = None):
+    """(unit normal, gap, floor) of every particle against obstacle q at positions x + dp, x the start of a
+    position-level substep and dp the displacement since (`overlap_normal`, with the predicted one `ahead`,
+    holding start overlaps deeper than `hold`, at least CONTACT_SLOP r; a plane's normal is its own). The gap is
+    computed as (gap at x) + n . dp, so a displacement below an ulp of x still counts. q and `sphere` as for
+    `obstacle_gap`."""
+    dim, nview = x.shape[0], x.ndim - 1
+    r = cs.radius[0]
+    if not (q >= cs.ct.n_planes if sphere is None else sphere):
+        nrm = jnp.broadcast_to(cs.plane_normal[q].reshape((dim,) + (1,) * nview), x.shape)
+        C0 = dot(nrm, x) - cs.plane_offset[q] - r
+        return nrm, C0 + dot(nrm, dp), jnp.where(C0 < -jnp.maximum(hold, CONTACT_SLOP * r), C0, 0)
+    s = q - cs.ct.n_planes
+    c = cs.sphere_centre[s].reshape((dim,) + (1,) * nview)
+    return overlap_normal(x - c, dp, cs.sphere_radius[s] + r, ahead, jnp.maximum(hold, CONTACT_SLOP * r))
 
 
 def obstacle_size(cs: ContactSystem, q, sphere: Optional[bool] = None):
@@ -917,24 +1012,42 @@ def obstacle_size(cs: ContactSystem, q, sphere: Optional[bool] = None):
     return jnp.sum(jnp.abs(cs.sphere_centre[q - cs.ct.n_planes]))
 
 
-def velocity_rows(cs: ContactSystem, w, p, v_before, imp: Impulses, partners=None):
+def velocity_rows(cs: ContactSystem, w, p, v_before, imp: Impulses, partners=None, moved=None):
     """Velocity rows (obstacle Rows or None, pair Rows or None) at the end of the position solve: normals and
     gaps at `p`, restitution targets from `v_before` (start of the substep, after gravity) by the impact
     propagation of every solver (`chain_bounces`), and effective masses only for contacts that pushed in this
     substep (lam_n > 0; the others get k = 0, no impulse). A grid model's pair rows are its `partners`' slots
-    [n, K]."""
+    [n, K].
+
+    `moved` = (x, dp, ahead): p = x + dp came from the position pass's start x, displacement dp and predicted
+    displacement `ahead`; the rows then take the position pass's own normals (`overlap_normal`: a start overlap's
+    start normal, a swept contact's normal at its time of impact), so that the velocity rows, which may take
+    back the position impulses (their accumulated impulse starts from them), act along the normals those were
+    applied along. On the end's own normals, taking a swept pair's position impulse back along another
+    direction left an impulse across the pair that gained energy (RATTLE's break at dt 1/60: +7e-4 of its
+    kinetic energy in one step)."""
     ct, dim = cs.ct, p.shape[0]
     obs = pairs = None
+    x0, dp, ahead = (None, None, None) if moved is None else moved
     if ct.n_obstacles:
-        n, C = each_obstacle(ct, lambda c, q, sphere, row: (c, obstacle_gap(cs, q, p, sphere=sphere)), None)[1]
+        def gap(c, q, sphere, row):
+            if moved is None:
+                return c, obstacle_gap(cs, q, p, sphere=sphere)
+            return c, obstacle_moved_gap(cs, q, x0, dp, ahead, sphere=sphere)[:2]
+        n, C = each_obstacle(ct, gap, None)[1]
         winv = jnp.broadcast_to(w[0], C.shape)
         k = L.safe_reciprocal(winv) * (imp.obs_n > 0).astype(C.dtype)
         obs = Rows(n, None, k, winv, jnp.zeros_like(C), C)
     if ct.n_pairs or ct.has_grid:
         pf, wf = p.reshape(dim, -1), w.reshape(-1)
         ia, ja, valid, _ = pair_slots(ct, pf.shape[1], partners)
-        dist, n = direction(pf[:, ja] - pf[:, ia])
-        C = dist - cs.radius_flat[ia] - cs.radius_flat[ja]
+        R = cs.radius_flat[ia] + cs.radius_flat[ja]
+        if moved is None:
+            dist, n = direction(pf[:, ja] - pf[:, ia])
+            C = dist - R
+        else:
+            x0f, df, af = (a.reshape(dim, -1) for a in (x0, dp, dp if ahead is None else ahead))
+            n, C, _ = overlap_normal(x0f[:, ja] - x0f[:, ia], df[:, ja] - df[:, ia], R, af[:, ja] - af[:, ia])
         winv = wf[ia] + wf[ja]
         k = L.safe_reciprocal(winv) * jnp.asarray(valid, winv.dtype) * (imp.pair_n > 0).astype(C.dtype)
         pairs = Rows(n, None, k, winv, jnp.zeros_like(C), C)

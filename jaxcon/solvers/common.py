@@ -157,7 +157,8 @@ class _Rows(NamedTuple):
     k: Any
 
 
-def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_alpha=None, sets: bool = True):
+def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_alpha=None, sets: bool = True,
+                   base=None):
     """One pass of position-level projection over the rod and rope colours, (_, (p, mu)) -> (p, mu): each
     constraint, with d = p_j - p_i, moves its particles along d by dmu = (|d| - rest - alpha mu) / (w_i + w_j +
     alpha) (p_i += w_i n dmu, p_j -= w_j n dmu; mu > 0 pulls), its accumulated mu clamped >= 0 for ropes (a rope
@@ -169,7 +170,12 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_
     dmu = (C_lib - a mu) / (J M^-1 J^T + a), p += M^-1 J^T dmu, with a = `set_alpha(compliance)` (XPBD: the
     set's compliance / h^2); `set_alpha` None keeps a set's compliant rows out of the pass (split impulses: a
     compliant row's stretch is its spring's, not an error to correct). `sets=False` leaves the sets' rows out
-    (split impulses: Baumgarte corrects them through the velocities)."""
+    (split impulses: Baumgarte corrects them through the velocities).
+
+    `base`: displacement form (XPBD). The carry's p is then the displacement from the positions `base` (the
+    substep's start), and a rod's d is (base_j - base_i) + (p_j - p_i): the displacement h v + h^2 g stays in
+    full precision however far from the origin the particles are (in float32, base + h^2 g rounds h^2 g away
+    once it is below half an ulp of the position). A constraint set's fn is evaluated at base + p."""
     topo = sys.topology
     w_pairs = []
     for blk in topo.blocks:
@@ -178,12 +184,16 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_
             continue
         wi, wj = L.gather_pair(topo, blk, sys.w)
         wi, wj = wi[0], wj[0]
-        w_pairs.append((wi, wj, L.safe_reciprocal(wi + wj + alpha)))
+        d0 = None
+        if base is not None:
+            bi, bj = L.gather_pair(topo, blk, base)
+            d0 = bj - bi
+        w_pairs.append((wi, wj, L.safe_reciprocal(wi + wj + alpha), d0))
 
     def update(p, blk, rows):
-        rest, wi, wj, k, mu = rows
+        rest, wi, wj, k, d0, mu = rows
         pi, pj = L.gather_pair(topo, blk, p)
-        d = pj - pi
+        d = pj - pi if d0 is None else d0 + (pj - pi)
         # n (new - mu) with n = d / |d| is written as d times one scalar per constraint, built from
         # |d|^2 and 1/|d| (rods need no clamp: 1/|d| is 0 at zero length). `safe_length` keeps |d|^2
         # a reduction: on CPU, XLA stores d and |d|^2 as arrays before it, so the update below reads
@@ -201,7 +211,7 @@ def position_sweep(sys: System, rest: tuple, alpha, jacobi_relaxation=None, set_
 
     def update_set(p, blk, rows):
         ssys, mu = rows
-        f = R.set_frame(topo, blk, sys.cons[blk.generic], ssys, p, sys.w)
+        f = R.set_frame(topo, blk, sys.cons[blk.generic], ssys, p if base is None else base + p, sys.w)
         a = jnp.zeros_like(f.C) if set_alpha is None else set_alpha(f.alpha)
         if getattr(blk, "hub_slot", None) is not None:      # a set's stars: their rows solved together
             dmu = L.block_solve(topo, blk, f, f.C - a * mu, a)

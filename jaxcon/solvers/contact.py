@@ -19,8 +19,10 @@ from jax import lax
 
 from jaxcon.core import layout as L
 from jaxcon.core import rows as R
-from jaxcon.core.contact import ContactSystem, Impulses
+from jaxcon.core.contact import ContactSystem, Impulses, zero_impulses
 from jaxcon.core.contact_rows import (
+    CONTACT_SLOP,
+    PUSH_OUT_SPEED,
     UNILATERAL,
     ObstacleBlock,
     ObstacleColour,
@@ -31,6 +33,7 @@ from jaxcon.core.contact_rows import (
     is_in_solve,
     length as _length,
     obstacle_gap,
+    obstacle_moved_gap,
     overlap_normal,
     pair_block,
     pair_index,
@@ -38,6 +41,7 @@ from jaxcon.core.contact_rows import (
     pair_total,
     phase_target,
     slot_rows,
+    speculative_rows as contact_rows_speculative,
     velocity_rows,
 )
 
@@ -447,7 +451,8 @@ def impact_times(cs: ContactSystem, obs: Rows, pairs: Rows, imp: Impulses, shape
 OVERLAP_PASSES = 8
 
 
-def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pairs: Optional[Rows] = None, slop=0.0):
+def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pairs: Optional[Rows] = None, slop=0.0,
+                     cap=None, partners=None, beyond=None):
     """Move overlapping contacts apart at position level (non-linear Gauss-Seidel, as Box2D v2's position
     solver), `passes` times (default: `OVERLAP_PASSES` with pairs, `GRID_OVERLAP_PASSES` with a grid, else 1):
     pair rounds, then obstacles (which cannot move, so they have the last word; a heavy ball on light ones
@@ -456,7 +461,11 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
     overlap (an under-converged cluster, or the time-of-impact correction of a particle whose velocity was
     also changed by a later contact). A grid model's pairs (the rows `pairs` of this step) are projected
     slot by slot instead (the overlaps of one slot together, each split between the overlaps at its particles).
-    `slop`: the overlaps are projected onto `slop` times the contact distance, not onto 0 (`CONTACT_SLOP`)."""
+    `slop`: the overlaps are projected onto `slop` times the contact distance, not onto 0 (`CONTACT_SLOP`).
+    `cap` (m): a pass moves each contact out by at most this much (`push_out`). `partners` [n, K]: a grid
+    model's pairs where there are no `pairs` rows (`push_out`). `beyond` (m): a pass moves only contacts that
+    overlap by more than this (at least `CONTACT_SLOP` of the contact distance), the others not at all
+    (`push_out`)."""
     ct = cs.ct
     dim, shape = x.shape[0], x.shape
     r = cs.radius[0]
@@ -465,7 +474,8 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
     def obstacles(x):
         def one(x, q, sphere, _):                # planes, then spheres
             n, C = obstacle_gap(cs, q, x, sphere=sphere)
-            return x + n * (jnp.maximum(-C - slop * r, 0) * (k > 0)), None
+            size = r + cs.sphere_radius[q - ct.n_planes] if sphere else r      # the contact distance
+            return x + n * (_capped(jnp.maximum(-C - slop * r, 0), cap, beyond, size) * (k > 0)), None
         return each_obstacle(ct, one, x)[0]
 
     def pairs_pass(x):           # round by round, or slot by slot (mass splitting over a slot's overlaps)
@@ -473,7 +483,7 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
 
         def colour(xf, c, rows):
             dist, n = direction(c.rel(xf))
-            over = jnp.maximum((1 - slop) * c.both(rf) - dist, 0)
+            over = _capped(jnp.maximum((1 - slop) * c.both(rf) - dist, 0), cap, beyond, c.both(rf))
             if c.split:
                 over = over * (rows[0] > 0)
                 P = L.computed_once(lambda n, over, k: n * (over * k),
@@ -486,6 +496,8 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
 
     if pair_partners(pairs) is not None:          # a grid's slots, read by every pass: moved once
         block, kk = slot_rows(pairs.j, pairs.k, pairs.slots)
+    elif partners is not None:
+        block, kk = slot_rows(partners, (partners >= 0).astype(x.dtype))
     else:
         block, kk = pair_block(ct), None
 
@@ -512,6 +524,42 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
         return lax.cond(carry[1], run, lambda x: (x, carry[1]), carry[0])
 
     return lax.fori_loop(0, passes, gated, (x, jnp.ones((), bool)))[0]
+
+
+def speculative_pass(topo, cs: ContactSystem, w, x, v, h, partners=None):
+    """One Gauss-Seidel pass of `contact_rows.speculative_rows` on the velocities `v` at the end of a spring
+    solver's (sub)step of length h from positions `x` (Penalty): no contact passes more than half its contact
+    distance into a sphere or another particle, however fast (a particle that would otherwise move through a
+    wall of discs or a sphere within one substep). Returns (v, the rows' normal `Impulses`)."""
+    obs, pairs = contact_rows_speculative(cs, w, x, v, h, partners)
+    zero = zero_impulses(topo, cs.ct, x.dtype)
+    if obs is None and pairs is None:
+        return v, zero
+    return sweep(cs.replace(friction=jnp.zeros_like(cs.friction)), w, v, obs, pairs, zero)
+
+
+def _capped(a, cap, beyond=None, size=None):
+    """Overlaps `a` moved by at most `cap`, and only where deeper than `beyond`, at least CONTACT_SLOP `size`
+    (`project_overlaps`)."""
+    moved = a if cap is None else jnp.minimum(a, cap)
+    return moved if beyond is None else jnp.where(a > jnp.maximum(beyond, CONTACT_SLOP * size), moved, 0)
+
+
+def push_out(cs: ContactSystem, w, x, h, partners=None):
+    """The start overlaps of a position-level (sub)step of length h (XPBD, RATTLE) that are deeper than
+    PUSH_OUT_SPEED h (at least `CONTACT_SLOP` of the contact distance), pushed out at position level, each contact
+    by at most `contact_rows.PUSH_OUT_SPEED` h in all, with no change of velocity (`project_overlaps`,
+    OVERLAP_PASSES passes where particles collide with each other, as PGS's position pass; a grid model's
+    `partners` [n, K]). These are the overlaps the position pass holds (`contact_rows.overlap_normal`'s floor:
+    it keeps such a contact from getting deeper than it starts instead of pushing it out, which v = dp / h
+    would make velocity); a shallower one is the position pass's, projected within the substep at no more than
+    PUSH_OUT_SPEED. The two take disjoint sets: what a substep's sweeps leave (a resting pile's overlaps) is not
+    moved here. Removed here as well, a resting column of discs sank and was lifted again every substep (|v|
+    0.011 m/s instead of 0), and a 100 kg ball on two 1 kg balls pushed the upper one through the lower with
+    XPBD."""
+    passes = OVERLAP_PASSES if cs.ct.n_pairs or cs.ct.has_grid else 1
+    hold = PUSH_OUT_SPEED * h
+    return project_overlaps(cs, w, x, passes, None, 0.0, hold / passes, partners, hold)
 
 
 # ---- contacts at position level (XPBD, Penalty) ------------------------------------------------------------
@@ -541,11 +589,13 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
 # The substep's reported impulses (N s) are the velocity pass's totals: lam / h plus the velocity rows.
 
 
-def _position_row(disp, n, C, k, mu, ln, lt):
-    """One contact at position level: normal multiplier (accumulated, >= 0), then static friction. `disp` is
-    the second body's displacement over the substep relative to the first, k = 1 / (w_i + w_j) (0: no row).
-    Returns (position impulse change P [dim, ...] on the second body, new lam_n, new lam_t)."""
-    new_n = R.accumulate(UNILATERAL, ln, -C * k)        # the row update of every kind, at position level
+def _position_row(disp, n, C, floor, k, mu, ln, lt):
+    """One contact at position level: normal multiplier (accumulated, >= 0) projecting the gap C onto `floor`
+    (0, or what is left of a start overlap after this substep's push-out, `contact_rows.overlap_normal`), then
+    static friction. `disp` is the second body's displacement over the substep relative to the first,
+    k = 1 / (w_i + w_j) (0: no row). Returns (position impulse change P [dim, ...] on the second body, new lam_n,
+    new lam_t)."""
+    new_n = R.accumulate(UNILATERAL, ln, (floor - C) * k)        # the row update of every kind, at position level
     disp_t = disp - n * _dot(disp, n)
     stick = lt - disp_t * k
     limit = mu * new_n
@@ -556,44 +606,52 @@ def _position_row(disp, n, C, k, mu, ln, lt):
     return n * (new_n - ln) + (new_t - lt), new_n, new_t
 
 
-def position_pass(cs: ContactSystem, w, x, p, imp: Impulses, partners=None):
+def position_pass(cs: ContactSystem, w, x, dp, imp: Impulses, partners=None, ahead=None, h=None):
     """One position-level pass over every contact (the section's comment above): obstacles, then the pairs, each
     block colour by colour (`layout.each_colour`: round by round, or a grid model's `partners` [n, K] slot by
     slot, where the rows of one slot, whose particles may repeat, are relaxed by mass splitting over those that
-    push or overlap). x: positions at the start of the substep, p: current positions [dim, *view]; imp: position
-    multipliers (kg m) accumulated in this substep. Returns (p, imp)."""
+    push or overlap). x: positions at the start of the substep, dp: the displacement since, so
+    that the current positions are x + dp [dim, *view] (kept apart: every gap is computed as the start's plus
+    the displacement's part, `contact_rows.overlap_normal`, which also gives the speculative normal of a contact
+    whose path passes through the other body, and the floor: no contact gets deeper than it starts); imp: position
+    multipliers (kg m) accumulated in this substep; `ahead`: the substep's predicted displacement, which decides
+    the speculative normals (default dp); h: the substep's length, a start overlap deeper than PUSH_OUT_SPEED h
+    is held, not projected (`push_out` moves it; shallower ones, what the last substep's sweeps left, are
+    projected, so at most PUSH_OUT_SPEED per contact becomes velocity). Returns (dp, imp)."""
     ct, mu = cs.ct, cs.friction
+    hold = 0.0 if h is None else PUSH_OUT_SPEED * h
     on, ot = imp.obs_n, imp.obs_t
     if ct.n_obstacles:
         k = L.safe_reciprocal(w[0])
 
-        def obstacle(p, c, lam):
-            n, C = obstacle_gap(cs, c.q, p, x, sphere=c.sphere)
-            P, ln, lt = _position_row(p - x, n, C, k, mu, *lam)
-            return p + w * P, (ln, lt)
+        def obstacle(dp, c, lam):
+            n, C, floor = obstacle_moved_gap(cs, c.q, x, dp, ahead, hold, sphere=c.sphere)
+            P, ln, lt = _position_row(dp, n, C, floor, k, mu, *lam)
+            return dp + w * P, (ln, lt)
 
-        p, (on, ot) = L.each_colour(ObstacleBlock(ct), obstacle, p, (on, ot))
+        dp, (on, ot) = L.each_colour(ObstacleBlock(ct), obstacle, dp, (on, ot))
     pn, pt = imp.pair_n, imp.pair_t
     if ct.n_pairs or ct.has_grid:
-        dim, shape = p.shape[0], p.shape
+        dim, shape = dp.shape[0], dp.shape
         wf, xf, r = w.reshape(-1), x.reshape(dim, -1), cs.radius_flat
+        af = None if ahead is None else ahead.reshape(dim, -1)
 
-        def pair(pf, c, rows):
+        def pair(df, c, rows):
             _, (ln, lt) = rows
-            n, C = overlap_normal(c.rel(xf), c.rel(pf), c.both(r))
-            disp = c.rel(pf - xf)
+            disp = c.rel(df)
+            n, C, floor = overlap_normal(c.rel(xf), disp, c.both(r), None if af is None else c.rel(af), hold)
             if c.split:
-                act = ((c.partner >= 0) & ((C < 0) | (ln > 0))).astype(pf.dtype)
+                act = ((c.partner >= 0) & ((C < floor) | (ln > 0))).astype(df.dtype)
                 k = c.split_mass(wf, act) * act
             else:
                 k = L.safe_reciprocal(c.both(wf)) * c.valid
-            P, ln, lt = L.computed_once(_position_row, (disp, n, C, k, mu, ln, lt),
+            P, ln, lt = L.computed_once(_position_row, (disp, n, C, floor, k, mu, ln, lt),
                                         getattr(c, "partner", None))
-            return c.apply(wf, pf, P), (ln, lt)
+            return c.apply(wf, df, P), (ln, lt)
 
-        pf, (pn, pt) = L.each_colour(pair_block(ct, partners), pair, p.reshape(dim, -1), (None, (pn, pt)))
-        p = pf.reshape(shape)
-    return p, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
+        df, (pn, pt) = L.each_colour(pair_block(ct, partners), pair, dp.reshape(dim, -1), (None, (pn, pt)))
+        dp = df.reshape(shape)
+    return dp, imp._replace(obs_n=on, obs_t=ot, pair_n=pn, pair_t=pt)
 
 
 #: Gauss-Seidel sweeps of the position solvers' velocity pass (`position_velocity_pass`). Measured on the 55-disc
@@ -602,19 +660,23 @@ def position_pass(cs: ContactSystem, w, x, p, imp: Impulses, partners=None):
 VELOCITY_PASS_SWEEPS = 8
 
 
-def position_velocity_pass(cs: ContactSystem, w, p, v_before, v, imp: Impulses, h, partners=None, follow=False):
+def position_velocity_pass(cs: ContactSystem, w, p, v_before, v, imp: Impulses, h, partners=None, follow=False,
+                           moved=None):
     """Restitution and dynamic friction (the section's comment above) on v = (p - x) / h, `VELOCITY_PASS_SWEEPS`
     sweeps, then the restitution stage (`restitution_stage`). `imp` holds the substep's position multipliers
-    (kg m). Returns (v, the substep's contact impulses in N s), and with `follow` the positions as well.
+    (kg m). Returns (v, the substep's contact impulses in N s), and with `follow` the positions' change as well.
+    `moved` = (x, dp, ahead), the position pass's start, displacement and prediction (p = x + dp): the rows
+    take the position pass's normals (`contact_rows.velocity_rows`).
 
     `follow` (XPBD): the positions follow the friction of the velocity pass, p += h w (change of the friction
-    impulses). The
+    impulses); that change is returned on its own, for the caller to add to its displacement (XPBD's
+    displacement form: dp += h dv keeps it in full precision however large p is). The
     position pass's static friction cancels a contact's tangential displacement only within its substep, and
     one cold Gauss-Seidel iteration leaves some of it at every substep (a later row moves a particle that an
     earlier row held); the velocity pass removed that velocity but the displacement stayed, so a pyramid of
     discs crept apart by a constant step every substep (XPBD: 31% of R in 5 s). With the displacement taken
     back as the velocity is, what the friction holds at velocity level stays put."""
-    obs, pairs = velocity_rows(cs, w, p, v_before, imp, partners)
+    obs, pairs = velocity_rows(cs, w, p, v_before, imp, partners, moved)
     start = imp._replace(**{f: getattr(imp, f) / h for f in ("obs_n", "obs_t", "pair_n", "pair_t")})
     v, imp = lax.fori_loop(0, VELOCITY_PASS_SWEEPS, lambda _, c: sweep(cs, w, c[0], obs, pairs, c[1]), (v, start))
     v, imp = restitution_stage(cs, w, v, obs, pairs, imp)
@@ -626,4 +688,4 @@ def position_velocity_pass(cs: ContactSystem, w, p, v_before, v, imp: Impulses, 
     if pairs is not None:
         dv = dv + pair_total(cs.ct, w, imp.pair_t - start.pair_t, -1.0, pair_index(cs.ct, pairs),
                              pair_partners(pairs)).reshape(v.shape)
-    return v, imp, p + h * dv
+    return v, imp, h * dv

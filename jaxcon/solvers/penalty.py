@@ -184,7 +184,8 @@ class Penalty(Solver):
 
         def substep(x, v, ws, h, found=None):
             """Springs, then with contacts (after moving start overlaps out, `_start_overlaps`) the contacts'
-            penalty impulses. A grid model's step (`grid_substepped`) hands every substep the step's candidate
+            penalty impulses and the speculative rows that keep a fast particle from passing through a sphere or
+            another particle (`contact.speculative_pass`). A grid model's step (`grid_substepped`) hands every substep the step's candidate
             pairs `found`."""
             ws, prev = split_contacts(sys, ws)
             partners = None
@@ -203,7 +204,9 @@ class Penalty(Solver):
                 return x1, v1, imp_b
             dv, imp_c = _contact_impulses(topo, cs, sys.w, x, v, v1, h, k, c, jnp.asarray(self.slip_velocity, dtype),
                                           partners)
-            return x1 + h * dv, v1 + dv, (imp_b, with_found(imp_c, found))
+            v2, spec = contact.speculative_pass(topo, cs, sys.w, x, v1 + dv, h, partners)
+            imp_c = imp_c._replace(obs_n=imp_c.obs_n + spec.obs_n, pair_n=imp_c.pair_n + spec.pair_n)
+            return x1 + h * (v2 - v1), v2, (imp_b, with_found(imp_c, found))
 
         return run_substeps(sys, substep, self.substeps, x, v, lam, dt)
 

@@ -75,7 +75,8 @@ class RATTLE(Solver):
     (a slack rope is free). The returned lam is the constraint impulse over the step (mu / h + the velocity
     stage's impulse; lam > 0: tension; a hanging mass gives m g h). The warm-start input is not used.
 
-    Contacts (`planes`, `spheres`, `collide`) are unilateral rows in both stages, as XPBD's (docs/contacts.md):
+    Contacts (`planes`, `spheres`, `collide`) are unilateral rows in both stages, as XPBD's (docs/contacts.md;
+    the step starts with XPBD's `contact.push_out` of start overlaps):
     every SHAKE sweep ends with the contacts' position pass (`contact.position_pass`: overlaps pushed out along
     the normal with lam_n >= 0, static friction), whose correction / h goes into v' as the constraints' does; the
     velocity stage ends with the contacts' velocity rows swept to the same tolerance (`_contact_velocities`:
@@ -116,6 +117,8 @@ class RATTLE(Solver):
         dtype = x.dtype
         tol = jnp.asarray(default_tolerance(dtype) if self.tolerance is None else self.tolerance, dtype)
         tiny = jnp.finfo(dtype).tiny
+        if cs is not None:
+            x = contact.push_out(cs, sys.w, x, h, partners)
         fr0 = frames(sys, x)
         zero = tuple(jnp.zeros_like(f.C) for f in fr0)
 
@@ -130,8 +133,9 @@ class RATTLE(Solver):
             x, v, mu = shake(i, (x, v, mu))
             if cs is None:
                 return x, v, mu, imp
-            p, imp = contact.position_pass(cs, sys.w, x0, x, imp, partners)
-            return p, v + (p - x) / h, mu, imp
+            dp = x - x0
+            moved, imp = contact.position_pass(cs, sys.w, x0, dp, imp, partners, h * v_approach, h)
+            return x + (moved - dp), v + (moved - dp) / h, mu, imp
 
         carry = (x, v, zero, None if cs is None else zero_impulses(topo, cs.ct, dtype))
         written = self.tolerance == 0 and _unroll(self.iterations, topo)
@@ -188,7 +192,8 @@ class RATTLE(Solver):
         if cs is None:
             return x, v, lam
         v_free = sys.apply_gravity(v_approach, h / 2)
-        v, imp = _contact_velocities(sys, x, v_approach, v_free, v, imp, h, partners, self.iterations, bound)
+        v, imp = _contact_velocities(sys, (x0, x - x0), v_approach, v_free, v, imp, h, partners, self.iterations,
+                                     bound)
         return x, v, with_contacts(sys, lam, with_found(imp, found))
 
 
@@ -271,7 +276,7 @@ def _sweeps(body, carry, iterations: int, unroll: bool, change, bound):
     return lax.fori_loop(0, -(-iterations // _CHUNK), chunk, (carry, jnp.zeros((), bool)))[0]
 
 
-def _contact_velocities(sys, x, v_approach, v_free, v, imp, h, partners, iterations: int, bound):
+def _contact_velocities(sys, moved, v_approach, v_free, v, imp, h, partners, iterations: int, bound):
     """The contacts' velocity stage: each contact that pushed in the position stage (lam_n > 0) gets a velocity
     row (`contact_rows.velocity_rows`: restitution target from the approach velocity, dynamic friction), swept
     from the position stage's impulses imp / h to convergence (`_sweeps`) as the constraints' projection is: the
@@ -281,7 +286,8 @@ def _contact_velocities(sys, x, v_approach, v_free, v, imp, h, partners, iterati
     (the step's velocity without impulses) or of the compression phase (`contact.restitution_scale`). Returns
     (v, the step's contact impulses in N s)."""
     cs, w = sys.contact, sys.w
-    obs, pairs = contact_rows.velocity_rows(cs, w, x, v_approach, imp, partners)
+    x0, dp = moved                 # the position stage's start and displacement: its normals (`velocity_rows`)
+    obs, pairs = contact_rows.velocity_rows(cs, w, x0 + dp, v_approach, imp, partners, (x0, dp, h * v_approach))
     obs, pairs = (None if r is None else r._replace(target_c=jnp.zeros_like(r.target), warm=r.k > 0)
                   for r in (obs, pairs))
     fields = ("obs_n", "obs_t", "pair_n", "pair_t")
