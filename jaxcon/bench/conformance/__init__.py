@@ -34,6 +34,22 @@ SOLVERS: dict[str, Callable[..., jc.Solver]] = {
 
 CONTACT_SOLVERS = tuple(name for name, make in SOLVERS.items() if make().supports_contacts)
 
+#: Standard gravity (m/s^2), the cases' g (the library's default as well).
+G = 9.81
+
+
+def crossing_frequency(s, dt, centre=None) -> float:
+    """The frequency (Hz) of a signal sampled every `dt` from its crossings of `centre` (default: its mean), each
+    crossing time interpolated linearly between samples; NaN with fewer than three crossings."""
+    import numpy as np
+    s = np.asarray(s, np.float64)
+    s = s - (np.mean(s) if centre is None else centre)
+    k = np.nonzero(np.sign(s[:-1]) * np.sign(s[1:]) < 0)[0]
+    if len(k) < 3:
+        return float("nan")
+    t = (k + s[k] / (s[k] - s[k + 1])) * dt
+    return 0.5 * (len(t) - 1) / (t[-1] - t[0])
+
 
 class Outcome(NamedTuple):
     """What a case measured for one solver: the number that the table prints, whether it meets the bound, and

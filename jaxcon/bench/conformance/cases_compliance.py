@@ -5,9 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxcon as jc
-from jaxcon.bench.conformance import SOLVERS, Outcome, case
-
-G = 9.81
+from jaxcon.bench.conformance import G, SOLVERS, Outcome, case, crossing_frequency
 
 
 def _link(x, p):
@@ -65,12 +63,7 @@ def _frequency(solver_name, alpha, dt, m=0.1, length=0.5, periods=4):
     _, traj = jc.rollout(model, state, _solver(solver_name), dt, steps)
     x = np.asarray(traj.x)
     s = np.concatenate([[amp], np.linalg.norm(x[:, 1] - x[:, 0], axis=-1) - length])
-    t = dt * np.arange(len(s))
-    k = np.nonzero(np.sign(s[:-1]) != np.sign(s[1:]))[0]
-    cross = t[k] + dt * s[k] / (s[k] - s[k + 1])                # linear interpolation of the zero crossings
-    if len(cross) < 3:
-        return np.nan, omega
-    return np.pi * (len(cross) - 1) / (cross[-1] - cross[0]), omega
+    return 2 * np.pi * crossing_frequency(s, dt, centre=0.0), omega
 
 
 @case("compliant frequency",

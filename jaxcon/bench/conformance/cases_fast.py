@@ -12,9 +12,8 @@ import numpy as np
 from jaxcon.core.model import build
 from jaxcon.core.sim import rollout
 from jaxcon.scenes import cloth_edges
-from jaxcon.bench.conformance import CONTACT_SOLVERS, SOLVERS, Outcome, case
+from jaxcon.bench.conformance import G, CONTACT_SOLVERS, SOLVERS, Outcome, case
 
-G = 9.81
 PUSH = 3.0
 
 

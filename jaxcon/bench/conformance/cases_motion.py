@@ -5,19 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 import jaxcon as jc
-from jaxcon.bench.conformance import SOLVERS, Outcome, case
-
-G = 9.81
-
-
-def _frequency(s, dt) -> float:
-    """The frequency (Hz) of an oscillating signal from its crossings of its mean (linear interpolation)."""
-    s = np.asarray(s, np.float64) - np.mean(s)
-    k = np.nonzero(np.sign(s[:-1]) * np.sign(s[1:]) < 0)[0]
-    if len(k) < 3:
-        return float("nan")
-    t = (k + s[k] / (s[k] - s[k + 1])) * dt
-    return 0.5 / np.mean(np.diff(t))
+from jaxcon.bench.conformance import G, SOLVERS, Outcome, case, crossing_frequency
 
 
 def _oscillator(solver_name, full, bending: bool):
@@ -46,7 +34,7 @@ def _oscillator(solver_name, full, bending: bool):
         steps = int(round((6.0 if full else 2.0) / dt))
         _, traj = jc.rollout(model, state, SOLVERS[solver_name](), dt, steps)
         s = np.asarray(traj.x[:, -1, -1])
-        worst = max(worst, abs(_frequency(s, dt) / f - 1))
+        worst = max(worst, abs(crossing_frequency(s, dt) / f - 1))
     return Outcome(worst, worst <= 0.01, "|f / f_analytic - 1| <= 0.01, f = sqrt(1 / (alpha m d^2)) / 2 pi")
 
 

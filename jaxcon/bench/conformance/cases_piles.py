@@ -7,9 +7,8 @@ import math
 import numpy as np
 
 import jaxcon as jc
-from jaxcon.bench.conformance import SOLVERS, Outcome, case
+from jaxcon.bench.conformance import G, SOLVERS, Outcome, case
 
-G = 9.81
 
 # ---- Newton's cradle ------------------------------------------------------------------------------------------
 R_BALL, M_BALL, ROD, ANGLE, GAP, DT_CRADLE = 0.05, 0.1, 0.5, math.radians(60), 1e-6, 1 / 240

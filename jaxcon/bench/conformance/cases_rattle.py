@@ -8,9 +8,7 @@ import numpy as np
 from scipy import optimize
 
 import jaxcon as jc
-from jaxcon.bench.conformance import SOLVERS, Outcome, case
-
-G = 9.81
+from jaxcon.bench.conformance import G, SOLVERS, Outcome, case
 
 
 def _user_length(x, p):
