@@ -10,7 +10,6 @@ CASES = conformance.load()
 
 #: Cells that fail today, each with the reason (docs/conformance.md lists them with their numbers). They are
 #: strict expected failures: a cell here that starts passing fails the suite until it is taken off the list.
-_XPBD_ITER = "one XPBD iteration per substep does not converge a stiff spring (docs/solvers.md's iteration table)"
 _PENALTY_CHAIN = ("Penalty's linear contact springs carry a hit through touching balls as a wave, so the impulse "
                   "spreads over the row; PGS, Direct, XPBD, SoftStep and RATTLE pass")
 _PUSH = ("velocity-level push-out is capped per contact, not per particle, so a column of overlaps adds the caps "
@@ -18,7 +17,6 @@ _PUSH = ("velocity-level push-out is capped per contact, not per particle, so a 
 _SOFT_PUSH = ("a start overlap is a compressed contact spring (Penalty) or a soft row (SoftStep) that releases its "
               "energy; RATTLE passes")
 OPEN = {
-    ("bending cantilever at rest", "XPBD"): _XPBD_ITER,
     ("newton's cradle", "Penalty"): _PENALTY_CHAIN,
     ("newton's cradle, two balls in", "Penalty"): _PENALTY_CHAIN,
     ("start overlap push-out", "PGS"): _PUSH,
