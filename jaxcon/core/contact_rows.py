@@ -1004,6 +1004,15 @@ def obstacle_moved_gap(cs: ContactSystem, q, x, dp, ahead=None, hold=0.0, sphere
     return overlap_normal(x - c, dp, cs.sphere_radius[s] + r, ahead, jnp.maximum(hold, CONTACT_SLOP * r))
 
 
+def obstacle_reach(cs: ContactSystem, q, sphere: Optional[bool] = None):
+    """The contact distance of a particle (of the model's contact radius) from obstacle q: the radius for a
+    plane, the radius plus the sphere's for a sphere (q and `sphere` as for `obstacle_gap`)."""
+    r = cs.radius[0]
+    if not (q >= cs.ct.n_planes if sphere is None else sphere):
+        return r
+    return r + cs.sphere_radius[q - cs.ct.n_planes]
+
+
 def obstacle_size(cs: ContactSystem, q, sphere: Optional[bool] = None):
     """A size of obstacle q's parameters for a rounding tolerance (`tolerance`) at position level: the sum of
     the absolute components of a plane's normal, or of a sphere's centre (q and `sphere` as for `obstacle_gap`)."""

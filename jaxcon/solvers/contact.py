@@ -33,6 +33,7 @@ from jaxcon.core.contact_rows import (
     is_in_solve,
     length as _length,
     obstacle_gap,
+    obstacle_reach,
     obstacle_moved_gap,
     overlap_normal,
     pair_block,
@@ -474,7 +475,7 @@ def project_overlaps(cs: ContactSystem, w, x, passes: Optional[int] = None, pair
     def obstacles(x):
         def one(x, q, sphere, _):                # planes, then spheres
             n, C = obstacle_gap(cs, q, x, sphere=sphere)
-            size = r + cs.sphere_radius[q - ct.n_planes] if sphere else r      # the contact distance
+            size = obstacle_reach(cs, q, sphere)                                 # the contact distance
             return x + n * (_capped(jnp.maximum(-C - slop * r, 0), cap, beyond, size) * (k > 0)), None
         return each_obstacle(ct, one, x)[0]
 
