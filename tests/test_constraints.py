@@ -264,7 +264,8 @@ GRAD_SOLVERS = ALL + [jc.PGS(20, implicit=True)]
 def test_gradients_wrt_a_constraints_params_and_compliance(solver):
     """Reverse mode through a compliant `angle` set (2 joints of a clamped 2-link arm, 12 steps at 240 Hz) with
     respect to its rest angles and its compliance, against float64 central differences (one compiled batch of
-    value_and_grad: the gradient at the unperturbed point and the six perturbed losses). Measured agreement 1e-9 relative or better (XPBD 1e-8)."""
+    value_and_grad: the gradient at the unperturbed point and the six perturbed losses). Measured agreement 1e-9
+    relative or better (XPBD 1e-8)."""
     x = np.array([[-0.3, 0.0], [0.0, 0.0], [0.25, 0.05], [0.45, -0.1]])
     ang = jc.constraints.angle([(0, 1, 2), (1, 2, 3)], rest=[2.7, 2.5], compliance=0.3)
     model, state = jc.build(x, [1.0, 1.0, 0.2, 0.3], rods=[(1, 2), (2, 3)], fixed=[0, 1], constraints=[ang])
