@@ -301,7 +301,7 @@ def _loops(jaxpr):
     return out
 
 
-@pytest.mark.parametrize("solver", [jc.PGS(), jc.Jacobi(), jc.XPBD(substeps=4), jc.SoftStep(substeps=2)],
+@pytest.mark.parametrize("solver", [jc.PGS(4), jc.Jacobi(4), jc.XPBD(substeps=4), jc.SoftStep(substeps=2)],
                          ids=["pgs", "jacobi", "xpbd", "softstep"])
 def test_unrolled_sweeps_equal_the_loop(solver):
     """What an accelerator runs (`Topology.unroll`): the same sweeps and substeps, unrolled, give the loop's

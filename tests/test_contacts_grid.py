@@ -475,7 +475,8 @@ def test_sparse_slots_under_vmap(monkeypatch, mode):
     36-disc scene, with their velocities apart, equals each copy's own rollout with every slot swept whole
     (`SPARSE_SLOT` 0), in float64 to 1e-12 over two steps, and so do its derivatives with respect to the start
     velocities' scale: batched in forward mode, or in reverse mode (the extended set: its compile is three
-    quarters of this test's time), against each copy's own in forward mode. Two steps, not six: programs that
+    quarters of this test's time), against each copy's own in forward mode. Each side is one compiled program
+    (the positions and partners ride along the derivative as its auxiliary output). Two steps, not six: programs that
     round differently (a batch and a single copy; gathered and whole slots) are 1e-16 apart until a contact
     switches, and up to 3e-5 after it, under the suite's XLA flags with or without sparse slots; in this scene
     one switches in step 3 (step 4 or 5 before speculative rows stopped pushing, `contact_rows._targets`)."""
@@ -484,27 +485,30 @@ def test_sparse_slots_under_vmap(monkeypatch, mode):
     model, state = _sliding_discs(n)
     scale = jnp.array([1.0, 0.5])
 
-    def run(s):
+    def height(s):                                      # and the final positions and partners alongside
         final, traj = jc.rollout(model, state.replace(v=state.v * s), jc.PGS(10), 1 / 60, 2)
-        return final.x, traj.contact_partners
+        return jnp.sum(final.x[:, 1]), (final.x, traj.contact_partners)
 
-    def height(s):
-        return jnp.sum(run(s)[0][:, 1])
+    def slope(s):                   # forward mode: (the final positions and partners, the derivative): one program
+        _, tangent, aux = jax.jvp(height, (s,), (jnp.ones_like(s),), has_aux=True)
+        return aux, tangent
 
-    def slope(s):
-        return jax.jvp(height, (s,), (jnp.ones_like(s),))[1]
+    def reverse(s):
+        (_, aux), g = jax.value_and_grad(height, has_aux=True)(s)
+        return aux, g
 
     monkeypatch.setattr(contact_rows, "SPARSE_SLOT", 1.25)
     jax.clear_caches()
-    (batched, partners), grads = jax.vmap(run)(scale), jax.vmap(slope if mode == "forward" else jax.grad(height))(scale)
+    (batched, partners), grads = jax.jit(jax.vmap(slope if mode == "forward" else reverse))(scale)
     rows = np.sum(np.asarray(partners[0]) >= 0, axis=1)
     assert np.any((rows > 0) & (rows <= 29))               # a slot each copy alone would gather
     monkeypatch.setattr(contact_rows, "SPARSE_SLOT", 0)
     jax.clear_caches()
-    one, one_slope = jax.jit(lambda s: run(s)[0]), jax.jit(slope)
+    one = jax.jit(slope)                                    # each copy's positions and slope: one program
     for k in range(2):
-        np.testing.assert_allclose(np.asarray(batched[k]), np.asarray(one(scale[k])), rtol=0, atol=1e-12)
-        np.testing.assert_allclose(float(grads[k]), float(one_slope(scale[k])), rtol=1e-10)
+        (x, _), d = one(scale[k])
+        np.testing.assert_allclose(np.asarray(batched[k]), np.asarray(x), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(float(grads[k]), float(d), rtol=1e-10)
     assert batched.dtype == jnp.float64 and not np.allclose(batched[0], batched[1])
     monkeypatch.undo()
     jax.clear_caches()
