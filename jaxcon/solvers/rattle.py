@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import functools
 import math
-import operator
 from typing import Any
 
 import jax
@@ -208,7 +207,7 @@ def _trapezoid(f, h):
     A soft spring (h omega small, theta -> 0) gets the trapezoidal rule on the velocities: with the position
     stage, x' - 2 x + x_prev = h^2 (a' + a_prev) / 2, second order and without damping. A stiff one
     (theta -> 1) gets the implicit row, stable at any stiffness. At rest C = alpha T either way. The square
-    keeps the damping small up to h omega = 0.13 (docs/solvers.md)."""
+    keeps the damping small up to h omega = 0.13 (docs/constraints.md)."""
     g = R.gamma(f, h / math.sqrt(2))
     if g is None:
         return None
